@@ -1,0 +1,1 @@
+"""Dynamics models: the nominal quadrotor (numpy, CasADi, torch renderings) and KNODE residuals."""

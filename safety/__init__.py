@@ -1,0 +1,1 @@
+"""Host-side safety: supervisor, geofence, watchdogs (issue 6)."""

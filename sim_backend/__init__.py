@@ -1,0 +1,1 @@
+"""Simulated Crazyflie: rigid body, onboard firmware behaviour, scenarios, the sim:// cflib link."""
