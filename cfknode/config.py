@@ -62,6 +62,8 @@ class ControllerConfig:
     max_tilt_deg: float
     yaw_rate_gain: float
     max_yaw_rate_deg: float
+    geometric_kp: Vec3
+    geometric_kd: Vec3
 
 
 @dataclass(frozen=True)
