@@ -111,6 +111,26 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class KnodeConfig:
+    hidden: tuple[int, ...]
+    activation: Literal["tanh", "softplus", "relu"]
+    queue_size: int
+    max_residual: float
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    epochs: int
+    lr: float
+    weight_decay: float
+    method: Literal["rk4", "dopri5"]
+    adjoint: bool
+    seed: int
+    velocity_filter_hz: float
+    validation_fraction: float
+
+
+@dataclass(frozen=True)
 class RadioConfig:
     uri: str
     tx_rate_hz: float
@@ -129,6 +149,8 @@ class Config:
     estimator: EstimatorConfig
     trajectory: TrajectoryConfig
     sim: SimConfig
+    knode: KnodeConfig
+    training: TrainingConfig
     radio: RadioConfig
     log: LogConfig
 
@@ -153,6 +175,11 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("sim.dt", lambda v: 0 < v <= 0.01, "in (0, 0.01] s"),
     ("sim.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
     ("sim.mocap_dropout_prob", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("knode.queue_size", lambda v: 1 <= v <= 10, "in 1..10"),
+    ("knode.hidden", lambda v: len(v) >= 1 and all(0 < h <= 1024 for h in v), "a non-empty list of widths in 1..1024"),
+    ("training.epochs", lambda v: v >= 1, ">= 1"),
+    ("training.lr", lambda v: v > 0, "> 0"),
+    ("training.validation_fraction", lambda v: 0 < v < 1, "in (0, 1)"),
     ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
 )
 

@@ -1,0 +1,5 @@
+import sys
+
+from cfknode.cli import main
+
+sys.exit(main())
