@@ -172,6 +172,8 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("trajectory.duration", lambda v: v >= 0, ">= 0"),
     ("trajectory.takeoff_duration", lambda v: v > 0, "> 0"),
     ("trajectory.land_duration", lambda v: v > 0, "> 0"),
+    ("trajectory.settle_duration", lambda v: v >= 0, ">= 0"),
+    ("trajectory.ramp_duration", lambda v: v >= 0, ">= 0"),
     ("sim.dt", lambda v: 0 < v <= 0.01, "in (0, 0.01] s"),
     ("sim.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
     ("sim.mocap_dropout_prob", lambda v: 0 <= v < 1, "in [0, 1)"),

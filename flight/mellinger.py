@@ -1,0 +1,104 @@
+"""The Mellinger "acceleration to attitude" layer: world acceleration + yaw -> RPYT setpoint.
+
+Conventions (hardware-facts §1.2, §6): the angles are what cflib's ``send_setpoint`` takes,
+right-handed ZYX Euler angles in degrees: positive pitch = nose down = accelerate toward
++x body, positive roll = right side down = accelerate toward -y body. cflib negates pitch
+on the wire itself, so nothing is negated here. The RPYT yaw rate is clockwise-positive
+(the firmware negates it), so the CCW rate we want is sent negated.
+
+Runs at 400 Hz on 3-vectors, so it is plain ``math`` on floats (numpy costs more per call).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+from cfknode.config import ControllerConfig, VehicleConfig
+
+
+@dataclass(frozen=True)
+class AttitudeSetpoint:
+    """Arguments of cflib ``send_setpoint(roll, pitch, yawrate, thrust)``."""
+
+    roll_deg: float
+    pitch_deg: float
+    yawrate_deg: float
+    thrust: int
+
+
+def thrust_command(force: float, vehicle: VehicleConfig) -> int:
+    """Collective force [N] -> RPYT thrust command, rounded and clamped to [0, thrust_cmd_clamp]."""
+    cmd = round(force / vehicle.newton_per_cmd)
+    return min(max(cmd, 0), vehicle.thrust_cmd_clamp)
+
+
+def wrap_angle(angle: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def acc_to_setpoint(
+    acc_world: Sequence[float],
+    yaw_des: float,
+    q: Sequence[float],
+    vehicle: VehicleConfig,
+    controller: ControllerConfig,
+) -> AttitudeSetpoint:
+    """Desired world acceleration [m/s^2], desired yaw [rad] and the measured attitude
+    ``q`` (wxyz, body to world) -> roll/pitch angles, yaw rate and thrust command."""
+    m = vehicle.mass
+    fx = m * float(acc_world[0])
+    fy = m * float(acc_world[1])
+    fz = m * (float(acc_world[2]) + vehicle.gravity)
+
+    # Tilt limit on the desired force, keeping its vertical component (altitude first).
+    # Asking for fz <= 0 (falling faster than gravity) cannot be flown: stay level, no thrust.
+    if fz <= 0.0:
+        fx = fy = 0.0
+        fz = max(fz, 0.0)
+    else:
+        f_xy = math.hypot(fx, fy)
+        f_xy_max = fz * math.tan(math.radians(controller.max_tilt_deg))
+        if f_xy > f_xy_max:
+            scale = f_xy_max / f_xy
+            fx *= scale
+            fy *= scale
+
+    w, x, y, z = (float(c) for c in q)
+    yaw_meas = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+    # Desired body z axis, expressed in the frame turned by the *measured* yaw: the
+    # firmware's angle loop rebuilds R = Rz(its own yaw) Ry(pitch) Rx(roll), so roll and
+    # pitch must be the ZYX angles of an R_des whose yaw is the measured one. (Mellinger's
+    # x_c = (cos yaw_des, sin yaw_des, 0) construction gives an R_des whose ZYX yaw differs
+    # from that, which tilts the thrust up to 4 deg off at 30 deg tilt.) Yaw itself is
+    # tracked through the yaw rate below.
+    norm = math.sqrt(fx * fx + fy * fy + fz * fz)
+    if norm > 0.0:
+        zx, zy, zz = fx / norm, fy / norm, fz / norm
+    else:
+        zx, zy, zz = 0.0, 0.0, 1.0
+    cy, sy = math.cos(yaw_meas), math.sin(yaw_meas)
+    hx = cy * zx + sy * zy  # z_b_des in the yaw frame: Ry(pitch) Rx(roll) e3
+    hy = -sy * zx + cy * zy  #   = (cos r sin p, -sin r, cos r cos p)
+    roll = -math.asin(max(-1.0, min(1.0, hy)))
+    pitch = math.atan2(hx, zz)
+
+    # Collective thrust along the *measured* body z axis (third column of R(q)).
+    bx = 2.0 * (x * z + w * y)
+    by = 2.0 * (y * z - w * x)
+    bz = 1.0 - 2.0 * (x * x + y * y)
+    thrust = thrust_command(fx * bx + fy * by + fz * bz, vehicle)
+
+    ccw_rate_deg = math.degrees(controller.yaw_rate_gain * wrap_angle(yaw_des - yaw_meas))
+    limit = controller.max_yaw_rate_deg
+    ccw_rate_deg = max(-limit, min(limit, ccw_rate_deg))
+
+    return AttitudeSetpoint(
+        roll_deg=math.degrees(roll),
+        pitch_deg=math.degrees(pitch),
+        yawrate_deg=-ccw_rate_deg,
+        thrust=thrust,
+    )
