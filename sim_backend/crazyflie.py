@@ -1,0 +1,100 @@
+"""``SimCrazyflie``: the plant, the onboard firmware, the scenario and the battery, stepped together.
+
+One plant step (``sim.dt``, 2 ms) = one firmware stabilizer iteration on the state at the
+start of the step (500 Hz, motor commands held over the step), the step's mass from the
+scenario, one RK4 step of the plant, one battery update, then the step observers.
+Sim time is ``k * dt`` for an integer step count ``k``, never a running float sum.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+import numpy as np
+
+from cfknode.config import Config
+from cfknode.sim_backend.battery import Battery
+from cfknode.sim_backend.firmware import Firmware
+from cfknode.sim_backend.scenario import mass_at
+from cfknode.sim_backend.vehicle import Vehicle
+
+StepObserver = Callable[[float, np.ndarray], None]
+
+
+class SimCrazyflie:
+    """A simulated Crazyflie 2.1, deterministic for a given config (``sim.seed``).
+
+    ``lock`` (re-entrant, so a step observer may call back into the firmware) guards stepping
+    and every firmware input: in ``--realtime`` the cflib driver thread and the stepping thread
+    differ. ``rng`` is the simulator's seeded generator for stochastic scenario elements.
+    """
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.dt = config.sim.dt
+        self.lock = threading.RLock()
+        self.rng = np.random.default_rng(config.sim.seed)
+        self.vehicle = Vehicle(config.vehicle, config.sim)
+        self.firmware = Firmware(config.vehicle, self.dt, lock=self.lock)
+        self.battery = Battery(config.sim.battery_voltage)
+        self._nominal_mass = config.vehicle.mass
+        self._mass_changes = config.sim.mass_changes
+        self._mass = mass_at(0.0, self._nominal_mass, self._mass_changes)
+        self._k = 0
+        self._observers: list[StepObserver] = []
+
+    @property
+    def t(self) -> float:
+        """Sim time [s]."""
+        return self._k * self.dt
+
+    @property
+    def steps(self) -> int:
+        return self._k
+
+    @property
+    def state(self) -> np.ndarray:
+        """True rigid-body state (13): p, v, q (w, x, y, z), body rates."""
+        return self.vehicle.state
+
+    @property
+    def mass(self) -> float:
+        """True mass [kg] used by the latest plant step."""
+        return self._mass
+
+    @property
+    def motor_forces(self) -> np.ndarray:
+        """Current motor forces [N], m1..m4."""
+        return self.vehicle.motor_forces
+
+    @property
+    def battery_voltage(self) -> float:
+        """Terminal voltage under the current load [V] (what ``pm.vbat`` reports)."""
+        return self.battery.voltage
+
+    def add_step_observer(self, cb: StepObserver) -> None:
+        """``cb(t, state13)`` after every plant step, with the time at the end of the step."""
+        with self.lock:
+            self._observers.append(cb)
+
+    def step_to(self, t_target: float) -> None:
+        """Advance in ``dt`` steps until ``t >= t_target - 1e-12``."""
+        with self.lock:
+            dt = self.dt
+            vehicle = self.vehicle
+            firmware = self.firmware
+            battery = self.battery
+            while self._k * dt < t_target - 1e-12:
+                t = self._k * dt
+                x = vehicle.state_list()
+                motors = firmware.step(t, x)
+                self._mass = mass = mass_at(t, self._nominal_mass, self._mass_changes)
+                vehicle.step(motors, mass)
+                self._k += 1
+                battery.update(vehicle.state_list()[13:], dt)
+                if self._observers:
+                    t_new = self._k * dt
+                    state = vehicle.state
+                    for cb in self._observers:
+                        cb(t_new, state)

@@ -1,0 +1,420 @@
+"""What the Crazyflie firmware does with what it receives (default PID controller, HF 1.2, 1.3, 2.1, 5).
+
+Inputs arrive as decoded CRTP packets (``on_*``); ``control`` runs once per plant step
+(500 Hz, the firmware's ATTITUDE_RATE) and returns the four motor commands. Modelled:
+
+- RPYT commander (port 3): angle mode for roll/pitch, rate mode for yaw. The wire pitch is
+  stored as it comes (cflib already negated it, so it is the firmware's "legacy" pitch,
+  + = nose up); the yaw rate is negated ("legacy rate input is inverted"), so + on the wire
+  turns clockwise seen from above. Thrust < 1000 -> 0, clamp ``vehicle.thrust_cmd_clamp``;
+  the thrust stays 0 until one packet with thrust == 0 has arrived (unlock).
+- Commander priorities: streamed setpoints (2) beat the high-level commander (1); a streamed
+  setpoint disables the high-level planner; ``notify_setpoint_stop`` relaxes the priority;
+  a stopped (not disabled) planner feeds null setpoints, which keep the watchdog satisfied.
+- Supervisor, evaluated at 25 Hz as on the drone: ReadyToFly ("idle") -> Flying when a motor
+  runs; Flying -> WarningLevelOut when the setpoint is > 0.5 s old (roll = pitch = 0, yaw
+  rate 0, thrust kept); -> ExceptFreeFall -> Locked when > 2 s old (motors off, setpoints
+  ignored for good); Flying -> Landed when no motor has run for 2 s. WarningLevelOut has no
+  path to Landed, hence the "stop streaming right after cutting thrust locks it" gotcha.
+  Simplification: Landed stands for the firmware's Landed/Reset/pre-flight/ReadyToFly
+  sequence (a few supervisor ticks on the drone) and goes back to Flying directly.
+- Attitude PID (controller_pid + attitude_pid_controller): the yaw-rate setpoint moves a yaw
+  angle setpoint; angle PIDs give rate setpoints [deg/s]; rate PIDs give int16 outputs;
+  everything reset while the thrust is 0. Derivative on the measurement, integrator
+  clamps, yaw error and yaw derivative wrapped to +-180 deg. The estimate is perfect
+  (true attitude and body rates).
+- Legacy X mixer with r = roll/2, p = pitch/2 and the excess-capping rule.
+
+Units and stability: the rate PID's output is a PWM difference, so its loop gain in SI is
+kp * (180/pi) [units per rad/s] * 2 * (arm/sqrt(2)) * thrust_max/65535 [N m per unit] / J:
+with the defaults 250 * 57.3 * 1.19e-7 / 1.66e-5 ~ 103 1/s, crossing over near 85 rad/s
+with the 15 ms motor lag (phase margin ~75 deg; kd/kp = 10 ms adds lead). The angle loop
+(kp 6 1/s) is an order of magnitude slower, so the firmware gains are used unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from cfknode.config import VehicleConfig
+from cfknode.sim_backend.vehicle import CMD_MAX, command_to_force
+
+
+@dataclass(frozen=True)
+class PidGains:
+    kp: float
+    ki: float
+    kd: float
+    i_limit: float
+
+
+# platform_defaults_cf2.h (HF 2.1): angle loops in deg -> deg/s, rate loops in deg/s -> PWM units.
+ROLL_ANGLE_GAINS = PidGains(6.0, 3.0, 0.0, 20.0)
+PITCH_ANGLE_GAINS = PidGains(6.0, 3.0, 0.0, 20.0)
+YAW_ANGLE_GAINS = PidGains(6.0, 1.0, 0.35, 360.0)
+ROLL_RATE_GAINS = PidGains(250.0, 500.0, 2.5, 33.3)
+PITCH_RATE_GAINS = PidGains(250.0, 500.0, 2.5, 33.3)
+YAW_RATE_GAINS = PidGains(120.0, 16.7, 0.0, 166.7)
+
+RPYT_MIN_THRUST = 1000  # crtp_commander_rpyt.c MIN_THRUST
+INT16_LIMIT = 32767  # saturateSignedInt16 (symmetric so that negating is safe)
+WDT_LEVEL_OUT = 0.5  # s, COMMANDER_WDT_TIMEOUT_STABILIZE
+WDT_SHUTDOWN = 2.0  # s, COMMANDER_WDT_TIMEOUT_SHUTDOWN
+IS_FLYING_HYSTERESIS = 2.0  # s, IS_FLYING_HYSTERESIS_THRESHOLD
+SUPERVISOR_PERIOD = 1.0 / 25.0  # s, RATE_SUPERVISOR
+_TIME_TOL = 1e-9
+
+# Commander priorities (commander.h).
+PRIORITY_DISABLE = 0
+PRIORITY_HIGH_LEVEL = 1
+PRIORITY_CRTP = 2
+
+# Internal supervisor states -> the names in the architecture.
+_PUBLIC_STATE = {
+    "ready": "idle",
+    "flying": "flying",
+    "warning_level_out": "warning_level_out",
+    "except_free_fall": "locked",
+    "locked": "locked",
+    "landed": "landed",
+}
+_MOTORS_ALLOWED = frozenset({"ready", "flying", "warning_level_out", "landed"})
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """A commander setpoint as the firmware holds it.
+
+    ``pitch`` is the legacy pitch (+ = nose up), ``yaw_rate`` is CCW-positive [deg/s].
+    ``attitude_mode`` is False for null setpoints (all modes disabled: motors off).
+    """
+
+    timestamp: float
+    roll: float
+    pitch: float
+    yaw_rate: float
+    thrust: int
+    source: str  # "boot" | "rpyt" | "stop" | "high_level"
+    attitude_mode: bool
+
+
+@dataclass(frozen=True)
+class ExtPose:
+    t: float
+    position: tuple[float, float, float]
+    quaternion_xyzw: tuple[float, float, float, float]
+
+
+def _null_setpoint(t: float, source: str) -> Setpoint:
+    return Setpoint(t, 0.0, 0.0, 0.0, 0, source, False)
+
+
+def cap_angle(deg: float) -> float:
+    """Wrap to [-180, 180] degrees."""
+    while deg > 180.0:
+        deg -= 360.0
+    while deg < -180.0:
+        deg += 360.0
+    return deg
+
+
+def _saturate_int16(value: float) -> int:
+    if value > INT16_LIMIT:
+        return INT16_LIMIT
+    if value < -INT16_LIMIT:
+        return -INT16_LIMIT
+    return int(value)  # C cast: truncation toward zero
+
+
+def legacy_mixer(thrust: float, roll: int, pitch: int, yaw: int) -> tuple[int, int, int, int]:
+    """Legacy quadrotor power distribution (HF 2.1), pitch in the legacy sense (+ = nose up).
+
+    If any motor would exceed 65535, all four are lowered by the excess, which keeps the
+    differences (the attitude authority) at the cost of thrust; then each is clamped to
+    0..65535 (idle thrust 0 on an auto-arming CF2.1).
+    """
+    r = int(roll / 2.0)
+    p = int(pitch / 2.0)
+    m1 = int(thrust - r + p + yaw)
+    m2 = int(thrust - r - p - yaw)
+    m3 = int(thrust + r - p + yaw)
+    m4 = int(thrust + r + p - yaw)
+    excess = max(m1, m2, m3, m4) - CMD_MAX
+    if excess > 0:
+        m1 -= excess
+        m2 -= excess
+        m3 -= excess
+        m4 -= excess
+    return (min(max(m1, 0), CMD_MAX), min(max(m2, 0), CMD_MAX), min(max(m3, 0), CMD_MAX), min(max(m4, 0), CMD_MAX))
+
+
+def firmware_attitude(qw: float, qx: float, qy: float, qz: float) -> tuple[float, float, float]:
+    """(roll, legacy pitch, yaw) in degrees as the firmware's estimator reports them (ZYX, pitch negated)."""
+    roll = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+    s = 2.0 * (qw * qy - qz * qx)
+    pitch_rh = math.asin(1.0 if s > 1.0 else -1.0 if s < -1.0 else s)
+    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return math.degrees(roll), -math.degrees(pitch_rh), math.degrees(yaw)
+
+
+class _Pid:
+    """pid.c: P on the error, D on the measurement, clamped integral, optional yaw wrapping."""
+
+    __slots__ = ("kp", "ki", "kd", "i_limit", "dt", "integ", "prev_measured", "wrap")
+
+    def __init__(self, gains: PidGains, dt: float, wrap: bool = False) -> None:
+        self.kp, self.ki, self.kd, self.i_limit = gains.kp, gains.ki, gains.kd, gains.i_limit
+        self.dt = dt
+        self.wrap = wrap
+        self.integ = 0.0
+        self.prev_measured = 0.0
+
+    def reset(self, measured: float) -> None:
+        self.integ = 0.0
+        self.prev_measured = measured
+
+    def update(self, desired: float, measured: float) -> float:
+        error = desired - measured
+        delta = self.prev_measured - measured
+        if self.wrap:
+            error = cap_angle(error)
+            delta = cap_angle(delta)
+        self.prev_measured = measured
+        integ = self.integ + error * self.dt
+        lim = self.i_limit
+        self.integ = integ = lim if integ > lim else -lim if integ < -lim else integ
+        return self.kp * error + self.kd * delta / self.dt + self.ki * integ
+
+
+class Firmware:
+    """The onboard firmware of one simulated Crazyflie.
+
+    ``lock`` (shared with the ``SimCrazyflie``) makes the inputs safe to call from the cflib
+    driver thread while another thread steps; pass the simulator's lock.
+    """
+
+    def __init__(self, vehicle: VehicleConfig, dt: float, lock: threading.RLock | None = None) -> None:
+        self.dt = dt
+        self._lock = lock if lock is not None else threading.RLock()
+        self._thrust_max = vehicle.thrust_max_per_motor
+        self._thrust_clamp = int(vehicle.thrust_cmd_clamp)
+        # Commander
+        self._setpoint = _null_setpoint(0.0, "boot")
+        self._priority = PRIORITY_DISABLE
+        self._hl_stopped = False  # planner idle (feeds null setpoints) vs disabled (feeds nothing)
+        self.thrust_locked = True
+        self.setpoints_received = 0
+        self.setpoints_blocked = 0
+        self.last_setpoint: Setpoint | None = None
+        # Localization
+        self.extposes_received = 0
+        self.last_extpose: ExtPose | None = None
+        # Supervisor
+        self._state = "ready"
+        self._next_supervisor_t = 0.0
+        self._latest_thrust_t: float | None = None
+        # Controller
+        self._pid_roll = _Pid(ROLL_ANGLE_GAINS, dt)
+        self._pid_pitch = _Pid(PITCH_ANGLE_GAINS, dt)
+        self._pid_yaw = _Pid(YAW_ANGLE_GAINS, dt, wrap=True)
+        self._pid_roll_rate = _Pid(ROLL_RATE_GAINS, dt)
+        self._pid_pitch_rate = _Pid(PITCH_RATE_GAINS, dt)
+        self._pid_yaw_rate = _Pid(YAW_RATE_GAINS, dt)
+        self._yaw_desired = 0.0
+        self._prev_attitude_mode: bool | None = None
+        self.active_setpoint = self._setpoint  # what the controller used last (after the supervisor's override)
+        self.control_outputs: tuple[int, int, int] = (0, 0, 0)  # roll, pitch, yaw (after the yaw negation)
+        self.motor_commands: tuple[int, int, int, int] = (0, 0, 0, 0)
+
+    # ------------------------------------------------------------------------- status
+    @property
+    def supervisor_state(self) -> str:
+        """One of "idle", "flying", "warning_level_out", "locked", "landed"."""
+        return _PUBLIC_STATE[self._state]
+
+    @property
+    def can_fly(self) -> bool:
+        """Whether the supervisor lets the motors run (and accepts streamed setpoints)."""
+        return self._state in _MOTORS_ALLOWED
+
+    @property
+    def setpoint(self) -> Setpoint:
+        """The setpoint the commander currently holds (before the supervisor's override)."""
+        return self._setpoint
+
+    # ------------------------------------------------------------------------- inputs
+    def on_rpyt(self, t: float, roll_deg: float, wire_pitch_deg: float, wire_yawrate_deg: float, thrust: int) -> None:
+        """A legacy RPYT packet (port 3, ``'<fffH'``) with its decoded wire values."""
+        with self._lock:
+            if not self._accepts_streamed():
+                return
+            raw = int(thrust)
+            if self._priority == PRIORITY_DISABLE:
+                self.thrust_locked = True
+            if raw == 0:
+                self.thrust_locked = False
+            if self.thrust_locked or raw < RPYT_MIN_THRUST:
+                value = 0
+            else:
+                value = min(raw, self._thrust_clamp)
+            sp = Setpoint(t, float(roll_deg), float(wire_pitch_deg), -float(wire_yawrate_deg), value, "rpyt", True)
+            self._set_setpoint(sp, PRIORITY_CRTP)
+            self.setpoints_received += 1
+            self.last_setpoint = sp
+
+    def on_stop(self, t: float) -> None:
+        """Generic stop setpoint (type 0): a null setpoint, motors off at once; refreshes the watchdog."""
+        with self._lock:
+            if not self._accepts_streamed():
+                return
+            sp = _null_setpoint(t, "stop")
+            self._set_setpoint(sp, PRIORITY_CRTP)
+            self.setpoints_received += 1
+            self.last_setpoint = sp
+
+    def on_notify_setpoint_stop(self, t: float) -> None:
+        """Relax the priority: the high-level commander may take over (if its planner is not disabled)."""
+        with self._lock:
+            if not self._accepts_streamed():
+                return
+            self._priority = PRIORITY_HIGH_LEVEL
+
+    def on_hl_stop(self, t: float) -> None:
+        """High-level STOP: the planner goes idle and from now on feeds null setpoints (when it has priority)."""
+        with self._lock:
+            self._hl_stopped = True
+            self._feed_high_level(t)
+
+    def on_extpose(self, t: float, pos: Sequence[float], quat_xyzw: Sequence[float]) -> None:
+        """External pose for the (here unused) Kalman estimator: stored and counted."""
+        with self._lock:
+            px, py, pz = (float(v) for v in pos)
+            qx, qy, qz, qw = (float(v) for v in quat_xyzw)
+            self.last_extpose = ExtPose(float(t), (px, py, pz), (qx, qy, qz, qw))
+            self.extposes_received += 1
+
+    # ------------------------------------------------------------------------- control
+    def control(self, t: float, state13: Sequence[float]) -> np.ndarray:
+        """One 500 Hz stabilizer iteration on the true state; returns the 4 motor commands (0..65535)."""
+        x = state13.tolist() if isinstance(state13, np.ndarray) else list(state13)
+        with self._lock:
+            return np.array(self.step(t, x), dtype=float)
+
+    def step(self, t: float, x: Sequence[float]) -> tuple[int, int, int, int]:
+        """``control`` without the lock and numpy (the simulator's hot path; it holds the lock)."""
+        if self._hl_stopped:
+            self._feed_high_level(t)
+        if t >= self._next_supervisor_t - _TIME_TOL:
+            self._supervisor_tick(t)
+            self._next_supervisor_t = (math.floor((t + _TIME_TOL) / SUPERVISOR_PERIOD) + 1) * SUPERVISOR_PERIOD
+        self.active_setpoint = sp = self._override(self._setpoint)
+        roll, pitch, yaw = firmware_attitude(x[6], x[7], x[8], x[9])
+        thrust = self._attitude_pid(sp, roll, pitch, yaw, math.degrees(x[10]), math.degrees(x[11]), math.degrees(x[12]))
+        if self._state in _MOTORS_ALLOWED and thrust > 0:
+            r, p, y = self.control_outputs
+            motors = legacy_mixer(thrust, r, p, y)
+        else:
+            motors = (0, 0, 0, 0)
+        fmax = self._thrust_max
+        # isFlyingCheck looks at the motors every step here (the drone samples them at 25 Hz).
+        if any(command_to_force(m, fmax) > 0.0 for m in motors):
+            self._latest_thrust_t = t
+        self.motor_commands = motors
+        return motors
+
+    # ------------------------------------------------------------------------- internals
+    def _accepts_streamed(self) -> bool:
+        # stabilizer.c: crtpCommanderBlock(!canFly) drops streamed packets when the supervisor forbids flight.
+        if self._state in _MOTORS_ALLOWED:
+            return True
+        self.setpoints_blocked += 1
+        return False
+
+    def _set_setpoint(self, sp: Setpoint, priority: int) -> bool:
+        """commanderSetSetpoint: accepted at equal or higher priority; a streamed one disables the planner."""
+        if priority < self._priority:
+            return False
+        self._setpoint = sp
+        self._priority = priority
+        if priority > PRIORITY_HIGH_LEVEL:
+            self._hl_stopped = False
+        return True
+
+    def _feed_high_level(self, t: float) -> None:
+        self._set_setpoint(_null_setpoint(t, "high_level"), PRIORITY_HIGH_LEVEL)
+
+    def _is_flying(self, t: float) -> bool:
+        return self._latest_thrust_t is not None and t - self._latest_thrust_t < IS_FLYING_HYSTERESIS
+
+    def _supervisor_tick(self, t: float) -> None:
+        age = t - self._setpoint.timestamp
+        warning = age > WDT_LEVEL_OUT
+        timeout = age > WDT_SHUTDOWN
+        flying = self._is_flying(t)
+        state = self._state
+        if state in ("ready", "landed"):
+            if flying:
+                state = "flying"
+        elif state == "flying":
+            if timeout:
+                state = "except_free_fall"
+            elif warning:
+                state = "warning_level_out"
+            elif not flying:
+                state = "landed"
+        elif state == "warning_level_out":
+            if timeout:
+                state = "except_free_fall"
+            elif not warning:
+                state = "flying"
+        elif state == "except_free_fall":
+            state = "locked"
+        self._state = state
+
+    def _override(self, sp: Setpoint) -> Setpoint:
+        """supervisorOverrideSetpoint: level out keeping the thrust, or a null setpoint."""
+        state = self._state
+        if state == "warning_level_out":
+            return Setpoint(sp.timestamp, 0.0, 0.0, 0.0, sp.thrust, sp.source, True)
+        if state in ("except_free_fall", "locked"):
+            return _null_setpoint(sp.timestamp, sp.source)
+        return sp
+
+    def _reset_pids(self, roll: float, pitch: float, yaw: float) -> None:
+        self._pid_roll.reset(roll)
+        self._pid_pitch.reset(pitch)
+        self._pid_yaw.reset(yaw)
+        self._pid_roll_rate.reset(0.0)
+        self._pid_pitch_rate.reset(0.0)
+        self._pid_yaw_rate.reset(0.0)
+
+    def _attitude_pid(
+        self, sp: Setpoint, roll: float, pitch: float, yaw: float, gyro_x: float, gyro_y: float, gyro_z: float
+    ) -> int:
+        """controller_pid at ATTITUDE_RATE; sets ``control_outputs`` and returns the thrust command."""
+        if sp.attitude_mode != self._prev_attitude_mode:
+            # setpointModeChanged(): a new mode starts from fresh PIDs.
+            self._reset_pids(roll, pitch, yaw)
+            self._prev_attitude_mode = sp.attitude_mode
+        if sp.attitude_mode:
+            self._yaw_desired = cap_angle(self._yaw_desired + sp.yaw_rate * self.dt)
+        thrust = sp.thrust
+        if thrust == 0:
+            self.control_outputs = (0, 0, 0)
+            self._reset_pids(roll, pitch, yaw)
+            self._yaw_desired = yaw
+            return 0
+        roll_rate_des = self._pid_roll.update(sp.roll, roll)
+        pitch_rate_des = self._pid_pitch.update(sp.pitch, pitch)
+        yaw_rate_des = self._pid_yaw.update(self._yaw_desired, yaw)
+        # The legacy pitch axis is flipped, so is its gyro (controller_pid passes -gyro.y).
+        roll_out = _saturate_int16(self._pid_roll_rate.update(roll_rate_des, gyro_x))
+        pitch_out = _saturate_int16(self._pid_pitch_rate.update(pitch_rate_des, -gyro_y))
+        yaw_out = _saturate_int16(self._pid_yaw_rate.update(yaw_rate_des, gyro_z))
+        self.control_outputs = (roll_out, pitch_out, -yaw_out)
+        return thrust

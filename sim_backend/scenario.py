@@ -1,0 +1,46 @@
+"""Disturbance scenarios for the simulated Crazyflie: mass changes, drag and wind.
+
+Pure functions of the configuration and the time or velocity; the plant calls them.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from cfknode.config import MassChange
+
+# A plant step starting at t_k applies a change scheduled at t_c when t_k >= t_c - TIME_TOL:
+# step times are k * dt in binary floating point, so a change "at 2.0 s" must not slip a
+# step because 1000 * 0.002 happened to round below 2.0.
+TIME_TOL = 1e-9
+
+
+def mass_at(t: float, nominal_mass: float, changes: Sequence[MassChange]) -> float:
+    """True mass [kg] for the plant step starting at ``t``.
+
+    Each change sets the mass to ``factor * nominal_mass`` (factors are relative to the
+    nominal mass, not cumulative); the latest change at or before ``t`` wins, ties going to
+    the one listed last.
+    """
+    factor = 1.0
+    latest = float("-inf")
+    for change in changes:
+        if change.t - TIME_TOL <= t and change.t >= latest:
+            latest = change.t
+            factor = change.factor
+    return factor * nominal_mass
+
+
+def drag_force(
+    vx: float, vy: float, vz: float, drag: Sequence[float], wind: Sequence[float]
+) -> tuple[float, float, float]:
+    """Linear aerodynamic drag on the air-relative velocity, world frame [N].
+
+    ``F = -drag * (v - wind)`` per axis; a constant wind therefore pushes a hovering vehicle
+    with ``drag * wind``.
+    """
+    return (
+        -drag[0] * (vx - wind[0]),
+        -drag[1] * (vy - wind[1]),
+        -drag[2] * (vz - wind[2]),
+    )
