@@ -18,6 +18,7 @@ from cfknode.config import Config, ConfigError
 from cfknode.flight.clock import SimClock, WallClock
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog
+from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
 from cfknode.flight.mpc import TranslationalMpc
 from cfknode.flight.radio import CflibRadio
@@ -64,6 +65,8 @@ def run_flight(cfg: Config, name_hint: str = "flight") -> FlightResult:
                 truth=lambda: sim.state,
             )
             record = asyncio.run(fly(parts))
+            radio.shutdown()
+            firmware_after = _firmware_after_handback(sim, clock)
             summary = compute_summary(
                 t=record.t,
                 p=record.p,
@@ -80,10 +83,22 @@ def run_flight(cfg: Config, name_hint: str = "flight") -> FlightResult:
                     "solver": cfg.controller.solver if mpc is not None else "none",
                     "lockstep": not cfg.sim.realtime,
                     "mocap_dropouts": mocap.stats().dropouts,
+                    "firmware_after_shutdown": firmware_after,
                 },
             )
             log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
     return FlightResult(summary=summary, record=record)
+
+
+def _firmware_after_handback(sim, clock) -> str:
+    """The simulated firmware's state once the handback has settled (lockstep only).
+
+    The firmware's 2 s landed hysteresis decides between Landed and Locked after the
+    radio stops streaming, so a lockstep flight runs the simulator on to show which.
+    """
+    if clock.lockstep:
+        sim.step_to(sim.t + 2.5)
+    return sim.firmware.supervisor_state
 
 
 @contextlib.contextmanager
@@ -104,6 +119,7 @@ def _sim_backend(cfg: Config) -> Iterator[tuple]:
         clock=clock.now,
         # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.
         advance=sim.step_to if clock.lockstep else None,
+        rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
     )
     stepper = None
     try:

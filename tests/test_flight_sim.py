@@ -90,3 +90,26 @@ def test_cli_fly_json_end_to_end(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["mse"] < 5e-4
     assert summary["log_path"].startswith(str(tmp_path))
+
+
+def test_mission_hands_the_firmware_back_landed_not_locked(circle):
+    assert circle.summary.extra["firmware_after_shutdown"] == "landed"
+
+
+def test_realtime_flight_on_the_wall_clock(tmp_path):
+    res = _fly(
+        tmp_path,
+        **{
+            "sim.realtime": True,
+            "trajectory.kind": "hover",
+            "trajectory.duration": 0.5,
+            "trajectory.takeoff_duration": 1.0,
+            "trajectory.settle_duration": 0.2,
+            "trajectory.land_duration": 1.0,
+        },
+    )
+    s = res.summary
+    # Wall time is at least the simulated time: the loop really waited for the clock.
+    assert s.wall_time_s >= s.duration_s - 0.05
+    assert s.ticks > 0.8 * 400 * s.duration_s
+    assert s.max_error < 0.05
