@@ -1,0 +1,90 @@
+"""``cfknode fly``: fly a mission (by default the simulated 0.5 m circle)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from cfknode.config import Config, load_config, parse_override
+
+HELP = "fly a mission (default: the simulated 0.5 m circle)"
+
+# CLI flag -> dotted config key. Flags are shortcuts; --set reaches every key.
+FLAGS: dict[str, str] = {
+    "backend": "backend",
+    "traj": "trajectory.kind",
+    "radius": "trajectory.radius",
+    "speed": "trajectory.speed",
+    "height": "trajectory.height",
+    "duration": "trajectory.duration",
+    "controller": "controller.kind",
+    "solver": "controller.solver",
+    "seed": "sim.seed",
+    "uri": "radio.uri",
+    "log_dir": "log.dir",
+}
+
+
+def add_config_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every command that builds a flight configuration shares."""
+    p.add_argument("--config", help="YAML file overriding the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_config_arguments(p)
+    p.add_argument("--backend", choices=["sim", "cf"])
+    p.add_argument("--traj", choices=["hover", "circle", "figure8"], help="trajectory kind")
+    p.add_argument("--radius", type=float, help="pattern radius [m]")
+    p.add_argument("--speed", type=float, help="pattern speed [m/s]")
+    p.add_argument("--height", type=float, help="flight height [m]")
+    p.add_argument("--duration", type=float, help="time on the pattern [s]")
+    p.add_argument("--controller", choices=["mpc", "geometric"])
+    p.add_argument("--solver", choices=["rti", "ipopt"])
+    p.add_argument("--seed", type=int)
+    p.add_argument("--uri", help="radio URI (sim://0 in simulation)")
+    p.add_argument("--log-dir", dest="log_dir", help="directory for the flight log")
+    p.add_argument("--realtime", action="store_true", help="simulate against the wall clock instead of lockstep")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--name", default=None, help="name hint for the log file")
+
+
+def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) -> Config:
+    overrides: dict[str, Any] = {}
+    for flag, key in flags.items():
+        value = getattr(args, flag, None)
+        if value is not None:
+            overrides[key] = value
+    if getattr(args, "realtime", False):
+        overrides["sim.realtime"] = True
+    for item in args.set:
+        key, value = parse_override(item)
+        overrides[key] = value
+    return load_config(args.config, overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = config_from_args(args)  # validate before importing the heavy parts
+    from rich.console import Console
+
+    from cfknode.flight.summary import render_summary, summary_to_json
+    from cfknode.mission import MissionError, run_flight
+
+    console = Console(stderr=args.json)
+    t = cfg.trajectory
+    if not args.json:
+        console.print(
+            f"[bold]cfknode fly[/]: {cfg.backend} backend, {t.kind} r={t.radius} m at {t.speed} m/s for "
+            f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
+        )
+    try:
+        result = run_flight(cfg, name_hint=args.name or t.kind)
+    except MissionError as exc:
+        print(f"cfknode: error: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(summary_to_json(result.summary))
+    else:
+        render_summary(result.summary, console)
+    return 0
