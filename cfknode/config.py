@@ -48,7 +48,8 @@ class VehicleConfig:
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    kind: Literal["mpc", "geometric"]
+    kind: Literal["mpc", "knode-mpc", "geometric"]
+    model: str
     rate_hz: float
     horizon: int
     dt: float

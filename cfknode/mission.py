@@ -20,6 +20,7 @@ from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog
 from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
+from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
 from cfknode.flight.radio import CflibRadio
 from cfknode.flight.summary import FlightSummary, compute_summary
@@ -42,12 +43,34 @@ def build_controller(cfg: Config) -> TranslationalMpc | None:
     return TranslationalMpc(cfg.controller, cfg.vehicle)
 
 
+def build_model_slot(cfg: Config) -> ModelSlot | None:
+    """The KNODE residual to fly with, loaded before take-off so a bad file refuses the flight."""
+    ctrl = cfg.controller
+    if ctrl.kind == "geometric":
+        if ctrl.model:
+            raise ConfigError("controller.model is set but controller.kind is geometric, which uses no model")
+        return None
+    if ctrl.kind == "knode-mpc" and not ctrl.model:
+        raise ConfigError("controller.kind knode-mpc needs a model file: --model FILE (see cfknode train)")
+    if not ctrl.model:
+        return None
+    from cfknode.models.modelfile import ModelFileError, load_model
+    from cfknode.models.residual_np import ResidualQueue
+
+    try:
+        queue = ResidualQueue.from_model_file(load_model(ctrl.model))
+    except ModelFileError as exc:
+        raise ConfigError(f"refusing to fly: {exc}") from None
+    return ModelSlot(queue, version=1)
+
+
 def run_flight(cfg: Config, name_hint: str = "flight") -> FlightResult:
     """Fly one mission with the configured backend and return its summary."""
     if cfg.backend != "sim":
         raise ConfigError("backend 'cf' (hardware) is not available in this version; use --backend sim")
     if not cfg.radio.uri.startswith("sim://"):
         raise ConfigError(f"config key 'radio.uri' must be a sim:// URI with backend sim, got {cfg.radio.uri!r}")
+    model = build_model_slot(cfg)
     mpc = build_controller(cfg)  # built (and compiled) before the clock starts
     with _sim_backend(cfg) as (sim, mocap, radio, clock):
         trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
@@ -63,6 +86,7 @@ def run_flight(cfg: Config, name_hint: str = "flight") -> FlightResult:
                 vehicle=cfg.vehicle,
                 controller=cfg.controller,
                 truth=lambda: sim.state,
+                model=model,
             )
             record = asyncio.run(fly(parts))
             radio.shutdown()
@@ -79,7 +103,8 @@ def run_flight(cfg: Config, name_hint: str = "flight") -> FlightResult:
                 log_path=str(log.path),
                 extra={
                     "fallback_ticks": record.fallbacks,
-                    "controller": cfg.controller.kind,
+                    "controller": "knode-mpc" if model is not None else cfg.controller.kind,
+                    "model": cfg.controller.model or None,
                     "solver": cfg.controller.solver if mpc is not None else "none",
                     "lockstep": not cfg.sim.realtime,
                     "mocap_dropouts": mocap.stats().dropouts,

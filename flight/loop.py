@@ -18,6 +18,7 @@ from cfknode.flight.clock import Clock
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import AttitudeSetpoint, acc_to_setpoint
+from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.trajectory import Trajectory
 from cfknode.mocap.source import PoseSource
 
@@ -43,6 +44,27 @@ class Log(Protocol):
     def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
 
 
+@dataclass(frozen=True)
+class TickInfo:
+    """What one tick saw and decided, for observers (training recorder, dashboard status)."""
+
+    t: float
+    est: StateEstimate | None
+    ref_p: np.ndarray
+    ref_v: np.ndarray
+    acc: np.ndarray  # commanded world acceleration (the model's input u)
+    setpoint: AttitudeSetpoint
+    source: str  # "mpc" | "fallback" | "geometric" | "cutoff" | "no_state"
+    compute_s: float
+    solve_s: float
+    missed: bool
+    model_version: int
+
+
+class TickObserver(Protocol):
+    def on_tick(self, tick: TickInfo) -> None: ...
+
+
 @dataclass
 class FlightParts:
     clock: Clock
@@ -55,6 +77,8 @@ class FlightParts:
     vehicle: VehicleConfig
     controller: ControllerConfig
     truth: Callable[[], np.ndarray] | None = None  # simulator's true 13-state, for logs and MSE
+    model: ModelSlot | None = None  # KNODE residual for the MPC; None flies the nominal model
+    observers: list[TickObserver] = field(default_factory=list)
 
 
 @dataclass
@@ -105,6 +129,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
     rec = FlightRecord.empty(n_ticks)
     gains = GeometricGains.from_config(ctrl, parts.vehicle)
     acc_prev = np.zeros(3)
+    prev: _Previous = _Previous()
     last_pose_t = -np.inf
     wall_start = time.perf_counter()
     k = 0
@@ -131,7 +156,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
             sp, source = MOTORS_OFF, "no_state"
             rec.no_state_ticks += 1
         else:
-            acc, ok, solve_s, source = _control(parts, est, ref, gains)
+            acc, ok, solve_s, source = _control(parts, est, ref, gains, prev)
             if not ok:
                 rec.fallbacks += 1
             acc_prev = acc
@@ -148,6 +173,11 @@ async def fly(parts: FlightParts) -> FlightRecord:
         rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
         rec.ticks += 1
         _log_tick(parts.log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok)
+        if parts.observers:
+            version = parts.model.version if parts.model is not None else 0
+            info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version)
+            for observer in parts.observers:
+                observer.on_tick(info)
 
         k += 1
         if not parts.clock.lockstep:
@@ -157,12 +187,25 @@ async def fly(parts: FlightParts) -> FlightRecord:
     return rec.trimmed()
 
 
+@dataclass
+class _Previous:
+    """The last MPC solution: the RTI linearisation points for this tick's residual."""
+
+    x_pred: np.ndarray | None = None
+    u_pred: np.ndarray | None = None
+
+
 def _control(
-    parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains
+    parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains, prev: _Previous
 ) -> tuple[np.ndarray, bool, float, str]:
     """Acceleration command for this tick: the MPC, or the geometric controller when it fails."""
     if parts.mpc is not None:
-        sol = parts.mpc.solve(np.concatenate((est.p, est.v)), ref)
+        x0 = np.concatenate((est.p, est.v))
+        residual = None
+        if parts.model is not None:
+            residual = parts.model.residual(*linearisation_points(x0, ref.a, prev.x_pred, prev.u_pred))
+        sol = parts.mpc.solve(x0, ref, residual)
+        prev.x_pred, prev.u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
         if sol.ok:
             return sol.acc, True, sol.solve_time, "mpc"
         fallback_source = "fallback"

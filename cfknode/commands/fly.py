@@ -19,6 +19,7 @@ FLAGS: dict[str, str] = {
     "height": "trajectory.height",
     "duration": "trajectory.duration",
     "controller": "controller.kind",
+    "model": "controller.model",
     "solver": "controller.solver",
     "seed": "sim.seed",
     "uri": "radio.uri",
@@ -40,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, help="pattern speed [m/s]")
     p.add_argument("--height", type=float, help="flight height [m]")
     p.add_argument("--duration", type=float, help="time on the pattern [s]")
-    p.add_argument("--controller", choices=["mpc", "geometric"])
+    p.add_argument("--controller", choices=["mpc", "knode-mpc", "geometric"])
+    p.add_argument("--model", help="KNODE model file: fly KNODE-MPC with it")
     p.add_argument("--solver", choices=["rti", "ipopt"])
     p.add_argument("--seed", type=int)
     p.add_argument("--uri", help="radio URI (sim://0 in simulation)")

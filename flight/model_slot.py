@@ -1,0 +1,69 @@
+"""The KNODE residual the MPC predicts with, linearised once per tick (lin-RTI).
+
+The networks stay out of the CasADi graph (solver-timings.md): each tick the queue is
+evaluated with its Jacobians in batched numpy at the previous solution's nodes, and the
+affine result becomes the MPC's per-stage parameters. Swapping a model is one reference
+assignment between ticks, so it never rebuilds or recompiles the solver.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from cfknode.flight.mpc import ResidualLinearisation
+
+
+class Linearisable(Protocol):
+    def linearise(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def evaluate(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class SwapRecord:
+    version: int
+    t: float  # flight time of the swap
+    swap_s: float  # wall time the swap took
+
+
+class ModelSlot:
+    """Holds the residual model in use; ``residual`` is called every tick, ``swap`` between ticks."""
+
+    def __init__(self, model: Linearisable | None, version: int = 0) -> None:
+        self._model = model
+        self.version = version
+        self.swaps: list[SwapRecord] = []
+
+    @property
+    def model(self) -> Linearisable | None:
+        return self._model
+
+    def residual(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> ResidualLinearisation | None:
+        """The affine residual at the given nodes (N, 6) and (N, 3); None when flying nominal."""
+        if self._model is None:
+            return None
+        c, jx, ju = self._model.linearise(x_nodes, u_nodes)
+        return ResidualLinearisation(c, jx, ju)
+
+    def swap(self, model: Linearisable | None, version: int, now: float) -> SwapRecord:
+        start = time.perf_counter()
+        self._model = model
+        self.version = version
+        record = SwapRecord(version=version, t=now, swap_s=time.perf_counter() - start)
+        self.swaps.append(record)
+        return record
+
+
+def linearisation_points(
+    x0: np.ndarray, ref_a: np.ndarray, x_pred: np.ndarray | None, u_pred: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes to linearise at: the previous solution (RTI), or the current state and the
+    reference acceleration on the first tick and after a failed solve."""
+    n = ref_a.shape[0] - 1
+    if x_pred is not None and u_pred is not None and np.all(np.isfinite(x_pred)) and np.all(np.isfinite(u_pred)):
+        return x_pred[:-1], u_pred
+    return np.broadcast_to(x0, (n, x0.shape[0])), ref_a[:-1]
