@@ -1,0 +1,416 @@
+"""KNODE model files: one safetensors file, weights as tensors, everything else as JSON metadata.
+
+Loading uses numpy only (``safetensors.numpy``): no torch import and no unpickling, so the
+flight process can read a model the trainer wrote.  Every problem with a file (corrupt,
+truncated, not safetensors, shapes that disagree with the metadata, non-finite numbers,
+missing keys, another format version) raises ``ModelFileError`` with a one-line message
+naming the file.
+
+Layout (format version 1):
+- tensors ``net{j}.layer{i}.weight`` (out, in) and ``net{j}.layer{i}.bias`` (out,), float64,
+  for network j = 0 (oldest) .. n-1 (newest) and layer i = 0 .. len(hidden);
+- header metadata ``{"format": "cfknode.knode", "cfknode": <JSON>}``; the JSON holds the
+  format version, architecture, per-network normalisation, queue weights, training
+  provenance and metrics, software version, creation time and free-form ``extra``.
+
+A network maps the raw input z = (vx, vy, vz, ax, ay, az) to a residual on v' (m/s^2):
+r = output_scale * MLP((z - input_mean) / input_scale); the queue's residual is
+sum_j w_j r_j with w_j = e^(j + 1 - n) (newest 1, then e^-1, e^-2, ...).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+FORMAT_NAME = "cfknode.knode"
+FORMAT_VERSION = 1
+INPUT_NAMES = ("vx", "vy", "vz", "ax", "ay", "az")
+OUTPUT_NAMES = ("dvx", "dvy", "dvz")
+ACTIVATIONS = ("tanh", "softplus", "relu")
+N_IN = len(INPUT_NAMES)
+N_OUT = len(OUTPUT_NAMES)
+
+# A header larger than this is not one of ours (ours are a few kB): refuse before parsing it.
+_MAX_HEADER_BYTES = 16 * 1024 * 1024
+
+
+class ModelFileError(ValueError):
+    """A model file that cannot be used, with a one-line message naming the file."""
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """Affine maps around one network: z_n = (z - input_mean) / input_scale, r = output_scale * y."""
+
+    input_mean: np.ndarray  # (6,)
+    input_scale: np.ndarray  # (6,), > 0
+    output_scale: np.ndarray  # (3,), > 0
+
+    @classmethod
+    def identity(cls) -> Normalisation:
+        return cls(np.zeros(N_IN), np.ones(N_IN), np.ones(N_OUT))
+
+    def to_json(self) -> dict[str, list[float]]:
+        return {
+            "input_mean": [float(v) for v in self.input_mean],
+            "input_scale": [float(v) for v in self.input_scale],
+            "output_scale": [float(v) for v in self.output_scale],
+        }
+
+
+@dataclass(frozen=True)
+class NetworkWeights:
+    """One residual MLP: ``layers[i] = (W (out, in), b (out,))``, hidden layers first, then the output layer."""
+
+    layers: tuple[tuple[np.ndarray, np.ndarray], ...]
+    normalisation: Normalisation
+
+
+@dataclass(frozen=True)
+class TrainingInfo:
+    """Where the newest network's training data came from and how well it fits."""
+
+    t0: float  # s, first sample used (flight clock of the source)
+    t1: float  # s, last sample used
+    sources: tuple[str, ...]  # log files (or window ids) the data came from
+    loss: float  # final data loss of the newest network, (m/s^2)^2
+    val_rmse_nominal: float  # held-out one-step velocity RMSE of the nominal model, m/s
+    val_rmse_model: float  # the same for the nominal + residual queue, m/s
+    epochs: int
+    wall_time: float  # s spent training
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "t0": float(self.t0),
+            "t1": float(self.t1),
+            "sources": list(self.sources),
+            "loss": float(self.loss),
+            "val_rmse_nominal": float(self.val_rmse_nominal),
+            "val_rmse_model": float(self.val_rmse_model),
+            "epochs": int(self.epochs),
+            "wall_time": float(self.wall_time),
+        }
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A network queue with its metadata, as numpy arrays (oldest network first)."""
+
+    hidden: tuple[int, ...]
+    activation: str
+    queue_size: int
+    networks: tuple[NetworkWeights, ...]
+    training: TrainingInfo | None = None
+    software_version: str = ""
+    created: str = ""  # ISO 8601 UTC; filled by save_model when empty
+    extra: Mapping[str, Any] = field(default_factory=dict)  # JSON-serialisable, e.g. the online model version
+
+    @property
+    def queue_weights(self) -> np.ndarray:
+        return queue_weights(len(self.networks))
+
+
+def queue_weights(n: int) -> np.ndarray:
+    """Forgetting weights w_k = e^(k - n), k = 1..n, newest (last) = 1 (the paper's recursion)."""
+    return np.exp(np.arange(1, n + 1, dtype=np.float64) - n)
+
+
+def save_model(path: str | Path, model: ModelFile) -> Path:
+    """Write ``model`` to ``path`` atomically: temp file in the same directory, fsync, ``os.replace``."""
+    path = Path(path)
+    _check_model(model, str(path))
+    tensors: dict[str, np.ndarray] = {}
+    for j, net in enumerate(model.networks):
+        for i, (w, b) in enumerate(net.layers):
+            tensors[f"net{j}.layer{i}.weight"] = np.ascontiguousarray(w, dtype=np.float64)
+            tensors[f"net{j}.layer{i}.bias"] = np.ascontiguousarray(b, dtype=np.float64)
+    created = model.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "architecture": {
+            "hidden": list(model.hidden),
+            "activation": model.activation,
+            "inputs": list(INPUT_NAMES),
+            "outputs": list(OUTPUT_NAMES),
+        },
+        "queue_size": model.queue_size,
+        "networks": [net.normalisation.to_json() for net in model.networks],
+        "queue_weights": [float(w) for w in model.queue_weights],
+        "training": None if model.training is None else model.training.to_json(),
+        "software_version": model.software_version or _software_version(),
+        "created": created,
+        "extra": dict(model.extra),
+    }
+    from safetensors.numpy import save
+
+    # allow_nan=False: metrics must be finite; a NaN here is a bug upstream, not a file to write.
+    blob = save(tensors, metadata={"format": FORMAT_NAME, "cfknode": json.dumps(meta, allow_nan=False)})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(blob)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def load_model(path: str | Path) -> ModelFile:
+    """Read and validate a model file (numpy only, never unpickles); raises ``ModelFileError``."""
+    path = Path(path)
+    name = str(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ModelFileError(f"model file {name}: not found") from None
+    except OSError as exc:
+        raise ModelFileError(f"model file {name}: cannot read ({exc.strerror or exc})") from None
+    header = _read_header(data, name)
+    raw_meta = header.get("__metadata__")
+    if not isinstance(raw_meta, dict) or raw_meta.get("format") != FORMAT_NAME:
+        raise ModelFileError(f"model file {name}: not a cfknode KNODE model (no '{FORMAT_NAME}' format tag)")
+    try:
+        meta = json.loads(raw_meta.get("cfknode", ""))
+    except (json.JSONDecodeError, TypeError):
+        raise ModelFileError(f"model file {name}: metadata is not valid JSON") from None
+    if not isinstance(meta, dict):
+        raise ModelFileError(f"model file {name}: metadata must be a JSON object")
+    from safetensors.numpy import load
+
+    try:
+        tensors = load(data)
+    except Exception as exc:  # safetensors raises its own error type for malformed buffers
+        raise ModelFileError(f"model file {name}: corrupt safetensors data ({_one_line(exc)})") from None
+    model = _model_from(meta, tensors, name)
+    _check_model(model, name)
+    return model
+
+
+def _read_header(data: bytes, name: str) -> dict[str, Any]:
+    # Parse the header ourselves so a wrong file gets a precise message before any tensor is read.
+    if len(data) < 8:
+        raise ModelFileError(f"model file {name}: too short to be a safetensors file ({len(data)} bytes)")
+    (n,) = struct.unpack("<Q", data[:8])
+    if n == 0 or n > _MAX_HEADER_BYTES or 8 + n > len(data):
+        raise ModelFileError(f"model file {name}: not a safetensors file or truncated (header length {n}, file {len(data)} bytes)")
+    try:
+        header = json.loads(data[8 : 8 + n].decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise ModelFileError(f"model file {name}: not a safetensors file (header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise ModelFileError(f"model file {name}: not a safetensors file (header is not a JSON object)")
+    ends = [
+        entry["data_offsets"][1]
+        for key, entry in header.items()
+        if key != "__metadata__" and isinstance(entry, dict) and isinstance(entry.get("data_offsets"), list)
+        and len(entry["data_offsets"]) == 2 and isinstance(entry["data_offsets"][1], int)
+    ]
+    expected = 8 + n + max(ends, default=0)
+    if expected > len(data):
+        raise ModelFileError(f"model file {name}: truncated ({len(data)} bytes, the header describes {expected})")
+    return header
+
+
+def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name: str) -> ModelFile:
+    def need(obj: Mapping[str, Any], key: str, where: str = "") -> Any:
+        if not isinstance(obj, Mapping) or key not in obj:
+            raise ModelFileError(f"model file {name}: metadata key '{where}{key}' is missing")
+        return obj[key]
+
+    version = need(meta, "format_version")
+    if version != FORMAT_VERSION:
+        raise ModelFileError(f"model file {name}: format version {version!r} is not supported (this build reads {FORMAT_VERSION})")
+    arch = need(meta, "architecture")
+    hidden = need(arch, "hidden", "architecture.")
+    activation = need(arch, "activation", "architecture.")
+    if not isinstance(hidden, list) or not hidden or not all(isinstance(h, int) and h > 0 for h in hidden):
+        raise ModelFileError(f"model file {name}: architecture.hidden must be a non-empty list of positive integers")
+    if activation not in ACTIVATIONS:
+        raise ModelFileError(f"model file {name}: unknown activation {activation!r}")
+    inputs, outputs = need(arch, "inputs", "architecture."), need(arch, "outputs", "architecture.")
+    if not isinstance(inputs, list) or not isinstance(outputs, list) or (tuple(inputs), tuple(outputs)) != (INPUT_NAMES, OUTPUT_NAMES):
+        raise ModelFileError(f"model file {name}: input/output layout differs from {INPUT_NAMES} -> {OUTPUT_NAMES}")
+    queue_size = need(meta, "queue_size")
+    nets_meta = need(meta, "networks")
+    if not isinstance(queue_size, int) or queue_size < 1:
+        raise ModelFileError(f"model file {name}: queue_size must be a positive integer")
+    if not isinstance(nets_meta, list):
+        raise ModelFileError(f"model file {name}: 'networks' must be a list")
+    stored_w = need(meta, "queue_weights")
+    expected_w = queue_weights(len(nets_meta))
+    if not isinstance(stored_w, list) or len(stored_w) != len(nets_meta) or not np.allclose(
+        np.asarray(stored_w, dtype=np.float64), expected_w, rtol=1e-12, atol=0.0
+    ):
+        raise ModelFileError(f"model file {name}: queue_weights disagree with e^(k-n) for {len(nets_meta)} networks")
+
+    sizes = [N_IN, *hidden, N_OUT]
+    expected_names: set[str] = set()
+    networks = []
+    for j, nm in enumerate(nets_meta):
+        norm = Normalisation(
+            _vector(need(nm, "input_mean", f"networks[{j}]."), N_IN, f"networks[{j}].input_mean", name),
+            _vector(need(nm, "input_scale", f"networks[{j}]."), N_IN, f"networks[{j}].input_scale", name),
+            _vector(need(nm, "output_scale", f"networks[{j}]."), N_OUT, f"networks[{j}].output_scale", name),
+        )
+        layers = []
+        for i in range(len(sizes) - 1):
+            wname, bname = f"net{j}.layer{i}.weight", f"net{j}.layer{i}.bias"
+            expected_names.update((wname, bname))
+            w = _tensor(tensors, wname, (sizes[i + 1], sizes[i]), name)
+            b = _tensor(tensors, bname, (sizes[i + 1],), name)
+            layers.append((w, b))
+        networks.append(NetworkWeights(tuple(layers), norm))
+    extra_names = sorted(set(tensors) - expected_names)
+    if extra_names:
+        raise ModelFileError(f"model file {name}: tensor '{extra_names[0]}' is not in the architecture ({len(nets_meta)} networks, hidden {hidden})")
+
+    training = need(meta, "training")
+    info = None if training is None else _training_from(training, name)
+    extra = meta.get("extra", {})
+    return ModelFile(
+        hidden=tuple(hidden),
+        activation=activation,
+        queue_size=queue_size,
+        networks=tuple(networks),
+        training=info,
+        software_version=str(need(meta, "software_version")),
+        created=str(need(meta, "created")),
+        extra=extra if isinstance(extra, dict) else {},
+    )
+
+
+def _training_from(obj: Any, name: str) -> TrainingInfo:
+    keys = ("t0", "t1", "sources", "loss", "val_rmse_nominal", "val_rmse_model", "epochs", "wall_time")
+    for key in keys:
+        if not isinstance(obj, Mapping) or key not in obj:
+            raise ModelFileError(f"model file {name}: metadata key 'training.{key}' is missing")
+    try:
+        return TrainingInfo(
+            t0=float(obj["t0"]),
+            t1=float(obj["t1"]),
+            sources=tuple(str(s) for s in obj["sources"]),
+            loss=float(obj["loss"]),
+            val_rmse_nominal=float(obj["val_rmse_nominal"]),
+            val_rmse_model=float(obj["val_rmse_model"]),
+            epochs=int(obj["epochs"]),
+            wall_time=float(obj["wall_time"]),
+        )
+    except (TypeError, ValueError):
+        raise ModelFileError(f"model file {name}: metadata 'training' has a value of the wrong type") from None
+
+
+def _vector(value: Any, n: int, key: str, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ModelFileError(f"model file {name}: metadata '{key}' must be a list of {n} numbers") from None
+    if arr.shape != (n,):
+        raise ModelFileError(f"model file {name}: metadata '{key}' must be a list of {n} numbers")
+    return arr
+
+
+def _tensor(tensors: Mapping[str, np.ndarray], key: str, shape: tuple[int, ...], name: str) -> np.ndarray:
+    if key not in tensors:
+        raise ModelFileError(f"model file {name}: tensor '{key}' is missing")
+    arr = tensors[key]
+    if arr.dtype.kind != "f":
+        raise ModelFileError(f"model file {name}: tensor '{key}' has dtype {arr.dtype}, expected floating point")
+    if arr.shape != shape:
+        raise ModelFileError(f"model file {name}: tensor '{key}' has shape {arr.shape}, the architecture says {shape}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def _check_model(model: ModelFile, name: str) -> None:
+    """Consistency and finiteness; shared by save (refuse to write) and load (refuse to use)."""
+    if model.activation not in ACTIVATIONS:
+        raise ModelFileError(f"model file {name}: unknown activation {model.activation!r}")
+    if len(model.networks) > model.queue_size:
+        raise ModelFileError(f"model file {name}: {len(model.networks)} networks exceed queue_size {model.queue_size}")
+    sizes = [N_IN, *model.hidden, N_OUT]
+    for j, net in enumerate(model.networks):
+        if len(net.layers) != len(sizes) - 1:
+            raise ModelFileError(f"model file {name}: network {j} has {len(net.layers)} layers, the architecture says {len(sizes) - 1}")
+        for i, (w, b) in enumerate(net.layers):
+            if np.shape(w) != (sizes[i + 1], sizes[i]) or np.shape(b) != (sizes[i + 1],):
+                raise ModelFileError(f"model file {name}: network {j} layer {i} has shapes {np.shape(w)}/{np.shape(b)}, expected {(sizes[i + 1], sizes[i])}")
+            if not (np.all(np.isfinite(w)) and np.all(np.isfinite(b))):
+                raise ModelFileError(f"model file {name}: network {j} layer {i} has non-finite weights")
+        norm = net.normalisation
+        for key, arr in (("input_mean", norm.input_mean), ("input_scale", norm.input_scale), ("output_scale", norm.output_scale)):
+            if not np.all(np.isfinite(arr)):
+                raise ModelFileError(f"model file {name}: network {j} {key} is not finite")
+        if np.any(norm.input_scale <= 0) or np.any(norm.output_scale <= 0):
+            raise ModelFileError(f"model file {name}: network {j} has a non-positive scale")
+    if model.training is not None:
+        t = model.training
+        for key in ("t0", "t1", "loss", "val_rmse_nominal", "val_rmse_model", "wall_time"):
+            if not math.isfinite(getattr(t, key)):
+                raise ModelFileError(f"model file {name}: training.{key} is not finite")
+
+
+def _software_version() -> str:
+    try:
+        from cfknode import __version__
+
+        return __version__
+    except ImportError:  # only when used outside the package
+        return "unknown"
+
+
+def _fsync_dir(directory: Path) -> None:
+    # Makes the rename itself durable; not every platform can open a directory, so best effort.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def model_summary(model: ModelFile) -> str:
+    """One line for logs and the CLI."""
+    parts = [f"{len(model.networks)}/{model.queue_size} nets", f"hidden {list(model.hidden)} {model.activation}"]
+    if model.training is not None:
+        t = model.training
+        parts.append(f"val RMSE {t.val_rmse_model:.4g} m/s (nominal {t.val_rmse_nominal:.4g})")
+    return ", ".join(parts)
+
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "INPUT_NAMES",
+    "OUTPUT_NAMES",
+    "ModelFile",
+    "ModelFileError",
+    "NetworkWeights",
+    "Normalisation",
+    "TrainingInfo",
+    "load_model",
+    "model_summary",
+    "queue_weights",
+    "save_model",
+]
