@@ -1,8 +1,12 @@
-"""The 400 Hz flight loop: mocap -> estimator -> MPC -> Mellinger layer -> radio, every tick.
+"""The 400 Hz flight loop: mocap -> estimator -> supervisor -> MPC -> Mellinger layer -> supervisor -> radio.
 
 The loop is the only asyncio code on the flight path: it awaits the clock between
 ticks (lockstep sim or wall time) and does the compute synchronously, so a tick's
-measured compute time is the real cost of estimator + MPC + Mellinger + bookkeeping.
+measured compute time is the real cost of estimator + MPC + Mellinger + safety + bookkeeping.
+
+The safety supervisor owns the radio: ``FlightParts`` has none, so poses and setpoints reach
+the drone only through ``supervisor.accept_pose`` and ``supervisor.send``. The supervisor
+also decides what each tick flies (``plan``) and when the flight is over (``finished``).
 """
 
 from __future__ import annotations
@@ -21,19 +25,8 @@ from cfknode.flight.mellinger import AttitudeSetpoint, acc_to_setpoint
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.trajectory import Trajectory
 from cfknode.mocap.source import PoseSource
-
-MOTORS_OFF = AttitudeSetpoint(0.0, 0.0, 0.0, 0)
-# After the landing reference reaches the ground, motors are cut and zeros streamed
-# this long before the radio's shutdown sequence hands the firmware back.
-CUTOFF_HOLD_S = 0.2
-
-
-class Radio(Protocol):
-    def set_setpoint(self, sp: AttitudeSetpoint) -> None: ...
-
-    def set_extpose(self, position: np.ndarray, quaternion: np.ndarray) -> None: ...
-
-    def pump(self, now: float) -> None: ...
+from cfknode.safety.operator import EstopMailbox, estop_watch, sigint_handler
+from cfknode.safety.supervisor import BLIND, FLY, MOTORS_OFF, Supervisor
 
 
 class Controller(Protocol):
@@ -54,11 +47,12 @@ class TickInfo:
     ref_v: np.ndarray
     acc: np.ndarray  # commanded world acceleration (the model's input u)
     setpoint: AttitudeSetpoint
-    source: str  # "mpc" | "fallback" | "geometric" | "cutoff" | "no_state"
+    source: str  # "mpc" | "fallback" | "geometric" | "blind" | "cutoff" | "stop" | "no_state" | "refused"
     compute_s: float
     solve_s: float
     missed: bool
     model_version: int
+    supervisor_state: str = ""  # the safety supervisor's state after this tick (State.value)
 
 
 class TickObserver(Protocol):
@@ -72,13 +66,14 @@ class FlightParts:
     estimator: VelocityEstimator
     trajectory: Trajectory
     mpc: Controller | None  # None flies the geometric controller alone
-    radio: Radio
+    supervisor: Supervisor  # owns the radio: the loop's only way to the drone
     log: Log
     vehicle: VehicleConfig
     controller: ControllerConfig
     truth: Callable[[], np.ndarray] | None = None  # simulator's true 13-state, for logs and MSE
     model: ModelSlot | None = None  # KNODE residual for the MPC; None flies the nominal model
     observers: list[TickObserver] = field(default_factory=list)
+    estop: EstopMailbox | None = None  # where `cfknode estop` reaches this flight
 
 
 @dataclass
@@ -94,6 +89,7 @@ class FlightRecord:
     mpc_ok: np.ndarray
     ticks: int = 0
     fallbacks: int = 0
+    fallback_reasons: dict[str, int] = field(default_factory=dict)  # MPC status -> ticks
     no_state_ticks: int = 0
     wall_time: float = 0.0
     events: list[str] = field(default_factory=list)
@@ -115,75 +111,99 @@ class FlightRecord:
         return FlightRecord(
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
             solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
-            fallbacks=self.fallbacks, no_state_ticks=self.no_state_ticks, wall_time=self.wall_time,
-            events=self.events,
+            fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
+            wall_time=self.wall_time, events=self.events,
         )
+
+    def ensure_room(self) -> None:
+        """Double the arrays when full: a supervisor landing can outlast the planned flight."""
+        n = len(self.t)
+        if self.ticks < n:
+            return
+        for name in ("t", "p", "p_ref", "compute_s", "solve_s", "missed", "mpc_ok"):
+            old = getattr(self, name)
+            new = np.zeros((2 * n, *old.shape[1:]), dtype=old.dtype)
+            new[:n] = old
+            setattr(self, name, new)
 
 
 async def fly(parts: FlightParts) -> FlightRecord:
-    """Fly the whole trajectory, then cut the motors; returns the per-tick record."""
-    ctrl, traj = parts.controller, parts.trajectory
+    """Fly the trajectory until the supervisor has cut the motors; returns the per-tick record.
+
+    Ctrl-C (SIGINT) goes to the supervisor while the flight runs: the first lands, the second
+    stops the motors. The e-stop mailbox is open for ``cfknode estop`` for the same span.
+    """
+    ctrl, traj, sup = parts.controller, parts.trajectory, parts.supervisor
     period = 1.0 / ctrl.rate_hz
     horizon_offsets = ctrl.dt * np.arange(ctrl.horizon + 1)
-    n_ticks = int(np.ceil((traj.duration + CUTOFF_HOLD_S) / period)) + 1
-    rec = FlightRecord.empty(n_ticks)
+    rec = FlightRecord.empty(int(np.ceil((traj.duration + 0.5) / period)) + 1)
     gains = GeometricGains.from_config(ctrl, parts.vehicle)
+    # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
+    deadline = sup.config.solve_deadline_s if sup.deadlines_apply else None
     acc_prev = np.zeros(3)
     prev: _Previous = _Previous()
     last_pose_t = -np.inf
     wall_start = time.perf_counter()
     k = 0
-    while k < n_ticks:
-        t_tick = k * period
-        await parts.clock.sleep_until(t_tick)
-        start = time.perf_counter()
-        now = parts.clock.now()
+    with sigint_handler(sup), estop_watch(sup, parts.estop):
+        while not sup.finished:
+            t_tick = k * period
+            await parts.clock.sleep_until(t_tick)
+            start = time.perf_counter()
+            now = parts.clock.now()
 
-        pose = parts.mocap.latest(now)
-        if pose is not None and pose.t > last_pose_t:
-            last_pose_t = pose.t
-            parts.estimator.update(pose)
-            parts.radio.set_extpose(pose.position, pose.quaternion)
-            parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True, "stamp": pose.t})
-        est = parts.estimator.predict(now, acc_prev)
-        ref = traj.sample(now + horizon_offsets)
+            pose = parts.mocap.latest(now)
+            if pose is not None and pose.t > last_pose_t:
+                last_pose_t = pose.t
+                if sup.accept_pose(now, pose):
+                    parts.estimator.update(pose)
+                    parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
+                                                    "stamp": pose.t})
+            est = parts.estimator.predict(now, acc_prev)
+            action, ref, source = sup.plan(now, est, traj.sample(now + horizon_offsets))
 
-        solve_s, ok = 0.0, False
-        if now >= traj.duration:
-            sp, source = MOTORS_OFF, "cutoff"
-        elif est is None:
-            # No pose yet: stay on the ground rather than fly blind.
-            sp, source = MOTORS_OFF, "no_state"
-            rec.no_state_ticks += 1
-        else:
-            acc, ok, solve_s, source = _control(parts, est, ref, gains, prev)
-            if not ok:
-                rec.fallbacks += 1
-            acc_prev = acc
-            sp = acc_to_setpoint(acc, float(ref.yaw[0]), est.q, parts.vehicle, ctrl)
-        parts.radio.set_setpoint(sp)
-        parts.radio.pump(now)
-        compute = time.perf_counter() - start
+            solve_s, ok, status = 0.0, False, ""
+            if action is FLY:
+                acc, ok, solve_s, source, status = _control(parts, est, ref, gains, prev, deadline)
+                if source == "fallback":
+                    rec.fallbacks += 1
+                    rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
+                acc_prev = acc
+                sp = acc_to_setpoint(acc, float(ref.yaw[0]), est.q, parts.vehicle, ctrl)
+            elif action is BLIND:
+                sp, acc_prev = sup.blind_setpoint, sup.blind_acc
+                prev.x_pred = prev.u_pred = None  # the last solution is stale once flying blind
+            else:
+                sp = MOTORS_OFF
+                if source == "no_state":
+                    rec.no_state_ticks += 1
+            sp = sup.send(now, sp)
+            compute = time.perf_counter() - start
 
-        missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
-        truth = parts.truth() if parts.truth is not None else None
-        p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
-        i = rec.ticks
-        rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, ref.p[0]
-        rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
-        rec.ticks += 1
-        _log_tick(parts.log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok)
-        if parts.observers:
-            version = parts.model.version if parts.model is not None else 0
-            info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version)
-            for observer in parts.observers:
-                observer.on_tick(info)
+            missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
+            sup.after_tick(now, source == "fallback", status, missed)
+            truth = parts.truth() if parts.truth is not None else None
+            p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
+            rec.ensure_room()
+            i = rec.ticks
+            rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, ref.p[0]
+            rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
+            rec.ticks += 1
+            _log_tick(parts.log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
+                      status if source == "fallback" else "")
+            if parts.observers:
+                version = parts.model.version if parts.model is not None else 0
+                info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version,
+                                sup.state.value)
+                for observer in parts.observers:
+                    observer.on_tick(info)
 
-        k += 1
-        if not parts.clock.lockstep:
-            # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
-            k = max(k, int(parts.clock.now() / period) + 1)
+            k += 1
+            if not parts.clock.lockstep:
+                # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
+                k = max(k, int(parts.clock.now() / period) + 1)
     rec.wall_time = time.perf_counter() - wall_start
+    rec.events = list(sup.events)
     return rec.trimmed()
 
 
@@ -196,9 +216,12 @@ class _Previous:
 
 
 def _control(
-    parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains, prev: _Previous
-) -> tuple[np.ndarray, bool, float, str]:
-    """Acceleration command for this tick: the MPC, or the geometric controller when it fails."""
+    parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains, prev: _Previous,
+    deadline: float | None = None,
+) -> tuple[np.ndarray, bool, float, str, str]:
+    """Acceleration command for this tick: the MPC, or the geometric controller when the MPC
+    fails or (``deadline``, s) answers too late. Returns (acc, ok, solve time, source, status)."""
+    solve_s = 0.0
     if parts.mpc is not None:
         x0 = np.concatenate((est.p, est.v))
         residual = None
@@ -206,13 +229,14 @@ def _control(
             residual = parts.model.residual(*linearisation_points(x0, ref.a, prev.x_pred, prev.u_pred))
         sol = parts.mpc.solve(x0, ref, residual)
         prev.x_pred, prev.u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
-        if sol.ok:
-            return sol.acc, True, sol.solve_time, "mpc"
-        fallback_source = "fallback"
+        solve_s = sol.solve_time
+        if sol.ok and (deadline is None or sol.solve_time <= deadline):
+            return sol.acc, True, solve_s, "mpc", "ok"
+        fallback_source, status = "fallback", sol.status if not sol.ok else "deadline"
     else:
-        fallback_source = "geometric"
+        fallback_source, status = "geometric", "ok"
     acc = geometric_acc(est.p, est.v, ref.p[0], ref.v[0], ref.a[0], gains)
-    return acc, parts.mpc is None, 0.0, fallback_source
+    return acc, parts.mpc is None, solve_s, fallback_source, status
 
 
 def _log_tick(
@@ -228,6 +252,7 @@ def _log_tick(
     solve_s: float,
     missed: bool,
     ok: bool,
+    status: str = "",
 ) -> None:
     if est is not None:
         state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q}
@@ -248,4 +273,7 @@ def _log_tick(
             "source": source,
         },
     )
-    log.write("/tick", now, {"compute_s": compute, "solve_s": solve_s, "missed": missed, "mpc_ok": ok})
+    tick: dict[str, Any] = {"compute_s": compute, "solve_s": solve_s, "missed": missed, "mpc_ok": ok}
+    if status:
+        tick["status"] = status  # why the MPC was not used (fallback ticks only)
+    log.write("/tick", now, tick)

@@ -3,7 +3,9 @@
 Frames are due at multiples of ``1 / rate_hz``; each is taken from the first plant step
 at or after its due time (the simulator reports every step through its step observer).
 A frame gets Gaussian position noise and a small random rotation, may be dropped, and
-becomes visible to ``latest(now)`` only once ``now >= sample_time + latency``.
+becomes visible to ``latest(now)`` only once ``now >= sample_time + latency``. ``outages``
+(fault injection) are time windows ``(t0, duration)`` in which no frame is sampled at all,
+as when the rigid body is occluded; their frames count as dropouts.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -40,6 +42,7 @@ class SimulatedMocap:
         latency: float,
         dropout_prob: float,
         seed: int,
+        outages: Sequence[tuple[float, float]] = (),
     ) -> None:
         if rate_hz <= 0:
             raise ValueError("rate_hz must be > 0")
@@ -53,6 +56,7 @@ class SimulatedMocap:
         self._att_noise = float(attitude_noise)
         self._latency = float(latency)
         self._dropout = float(dropout_prob)
+        self._outages = tuple((float(t0), float(t0) + float(d)) for t0, d in outages)
         self._rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_KEY,)))
         # The step observer cannot see the state at the current time, so the first
         # frame is the next frame time strictly after it.
@@ -71,8 +75,10 @@ class SimulatedMocap:
         sim.add_step_observer(self._on_step)
 
     @classmethod
-    def from_config(cls, sim: _SteppedSim, sim_cfg: Any) -> "SimulatedMocap":
-        """Build from ``cfg.sim`` (a ``cfknode.config.SimConfig``)."""
+    def from_config(
+        cls, sim: _SteppedSim, sim_cfg: Any, outages: Sequence[tuple[float, float]] = ()
+    ) -> "SimulatedMocap":
+        """Build from ``cfg.sim`` (a ``cfknode.config.SimConfig``), with optional outage windows."""
         return cls(
             sim,
             rate_hz=sim_cfg.mocap_rate_hz,
@@ -81,6 +87,7 @@ class SimulatedMocap:
             latency=sim_cfg.mocap_latency,
             dropout_prob=sim_cfg.mocap_dropout_prob,
             seed=sim_cfg.seed,
+            outages=outages,
         )
 
     def _on_step(self, t: float, state: np.ndarray) -> None:
@@ -92,6 +99,11 @@ class SimulatedMocap:
         self._next_k = max(self._next_k + 1, math.floor(t * self._rate + _TIME_EPS) + 1)
         self._next_t = self._next_k / self._rate
         rng = self._rng
+        if self._outages and any(t0 - _TIME_EPS <= t < t1 - _TIME_EPS for t0, t1 in self._outages):
+            with self._lock:
+                self._dropouts += 1
+                self._last_step_t = t
+            return
         if self._dropout > 0.0 and rng.random() < self._dropout:
             with self._lock:
                 self._dropouts += 1

@@ -1,1 +1,9 @@
-"""Host-side safety: supervisor, geofence, watchdogs (issue 6)."""
+"""Host-side safety (issue 6; DESIGN 6): the firmware has no geofence, mocap-loss or battery landing.
+
+- ``supervisor``: the flight's state machine and the radio's only gate (``Supervisor``).
+- ``geofence``: the box, its soft margin and the reference clamp.
+- ``landing``: the supervisor's own landing reference.
+- ``watchdogs``: persistence timers, battery filter, tilt, radio link health.
+- ``operator``: Ctrl-C, the ``cfknode estop`` mailbox.
+- ``preflight``: hardware pre-flight checks before the clock starts.
+"""
