@@ -18,6 +18,11 @@ Inputs arrive as decoded CRTP packets (``on_*``); ``control`` runs once per plan
   path to Landed, hence the "stop streaming right after cutting thrust locks it" gotcha.
   Simplification: Landed stands for the firmware's Landed/Reset/pre-flight/ReadyToFly
   sequence (a few supervisor ticks on the drone) and goes back to Flying directly.
+- Emergency stop (supervisor port 9 ch 1, or the legacy localization channel): from any
+  state that can run the motors -> ExceptFreeFall -> Locked. The emergency-stop watchdog
+  is off until its first notification; after that a gap of 1 s stops the drone the same
+  way, in every state, landed or not, until a reboot (``power_off`` / ``power_on``, what
+  cflib's ``PowerSwitch.stm_power_cycle`` does), which is the only thing that clears it.
 - Attitude PID (controller_pid + attitude_pid_controller): the yaw-rate setpoint moves a yaw
   angle setpoint; angle PIDs give rate setpoints [deg/s]; rate PIDs give int16 outputs;
   everything reset while the thrust is 0. Derivative on the measurement, integrator
@@ -66,6 +71,7 @@ INT16_LIMIT = 32767  # saturateSignedInt16 (symmetric so that negating is safe)
 WDT_LEVEL_OUT = 0.5  # s, COMMANDER_WDT_TIMEOUT_STABILIZE
 WDT_SHUTDOWN = 2.0  # s, COMMANDER_WDT_TIMEOUT_SHUTDOWN
 IS_FLYING_HYSTERESIS = 2.0  # s, IS_FLYING_HYSTERESIS_THRESHOLD
+ESTOP_WATCHDOG_TIMEOUT = 1.0  # s, DEFAULT_EMERGENCY_STOP_WATCHDOG_TIMEOUT (supervisor.c)
 SUPERVISOR_PERIOD = 1.0 / 25.0  # s, RATE_SUPERVISOR
 _TIME_TOL = 1e-9
 
@@ -203,6 +209,13 @@ class Firmware:
         self._lock = lock if lock is not None else threading.RLock()
         self._thrust_max = vehicle.thrust_max_per_motor
         self._thrust_clamp = int(vehicle.thrust_cmd_clamp)
+        self.powered = True
+        self.boots = 1
+        self._boot()
+
+    def _boot(self) -> None:
+        """Everything a reboot resets: commander, supervisor, emergency stop, controller."""
+        dt = self.dt
         # Commander
         self._setpoint = _null_setpoint(0.0, "boot")
         self._priority = PRIORITY_DISABLE
@@ -218,6 +231,11 @@ class Firmware:
         self._state = "ready"
         self._next_supervisor_t = 0.0
         self._latest_thrust_t: float | None = None
+        self.lock_reason: str | None = None  # why it went to Locked: commander_watchdog | emergency_stop | ...
+        # Emergency stop (crtp_localization_service / supervisor port)
+        self._estop_requested = False
+        self._estop_watchdog_t: float | None = None  # latest notification; None = watchdog inactive
+        self.estop_watchdog_notifications = 0
         # Controller
         self._pid_roll = _Pid(ROLL_ANGLE_GAINS, dt)
         self._pid_pitch = _Pid(PITCH_ANGLE_GAINS, dt)
@@ -234,8 +252,15 @@ class Firmware:
     # ------------------------------------------------------------------------- status
     @property
     def supervisor_state(self) -> str:
-        """One of "idle", "flying", "warning_level_out", "locked", "landed"."""
+        """One of "idle", "flying", "warning_level_out", "locked", "landed" ("off" while powered down)."""
+        if not self.powered:
+            return "off"
         return _PUBLIC_STATE[self._state]
+
+    @property
+    def estop_watchdog_active(self) -> bool:
+        """True once a watchdog notification has arrived (until the next reboot)."""
+        return self._estop_watchdog_t is not None
 
     @property
     def can_fly(self) -> bool:
@@ -287,12 +312,45 @@ class Firmware:
     def on_hl_stop(self, t: float) -> None:
         """High-level STOP: the planner goes idle and from now on feeds null setpoints (when it has priority)."""
         with self._lock:
+            if not self.powered:
+                return
             self._hl_stopped = True
             self._feed_high_level(t)
+
+    def on_emergency_stop(self, t: float) -> None:
+        """Emergency stop request: motors off at the next supervisor tick, then Locked."""
+        with self._lock:
+            if self.powered:
+                self._estop_requested = True
+
+    def on_emergency_stop_watchdog(self, t: float) -> None:
+        """Watchdog notification: from now on a 1 s gap is an emergency stop."""
+        with self._lock:
+            if self.powered:
+                self._estop_watchdog_t = t
+                self.estop_watchdog_notifications += 1
+
+    def power_off(self, t: float) -> None:
+        """STM32 powered down (cflib ``PowerSwitch.stm_power_down``): motors off, deaf."""
+        with self._lock:
+            self.powered = False
+            self.motor_commands = (0, 0, 0, 0)
+
+    def power_on(self, t: float) -> None:
+        """STM32 powered up: a fresh boot, which is what clears Locked and the watchdog latch."""
+        with self._lock:
+            if self.powered:
+                return
+            self.powered = True
+            self.boots += 1
+            self._boot()
+            self._next_supervisor_t = t
 
     def on_extpose(self, t: float, pos: Sequence[float], quat_xyzw: Sequence[float]) -> None:
         """External pose for the (here unused) Kalman estimator: stored and counted."""
         with self._lock:
+            if not self.powered:
+                return
             px, py, pz = (float(v) for v in pos)
             qx, qy, qz, qw = (float(v) for v in quat_xyzw)
             self.last_extpose = ExtPose(float(t), (px, py, pz), (qx, qy, qz, qw))
@@ -307,6 +365,8 @@ class Firmware:
 
     def step(self, t: float, x: Sequence[float]) -> tuple[int, int, int, int]:
         """``control`` without the lock and numpy (the simulator's hot path; it holds the lock)."""
+        if not self.powered:
+            return (0, 0, 0, 0)
         if self._hl_stopped:
             self._feed_high_level(t)
         if t >= self._next_supervisor_t - _TIME_TOL:
@@ -330,7 +390,7 @@ class Firmware:
     # ------------------------------------------------------------------------- internals
     def _accepts_streamed(self) -> bool:
         # stabilizer.c: crtpCommanderBlock(!canFly) drops streamed packets when the supervisor forbids flight.
-        if self._state in _MOTORS_ALLOWED:
+        if self.powered and self._state in _MOTORS_ALLOWED:
             return True
         self.setpoints_blocked += 1
         return False
@@ -351,18 +411,34 @@ class Firmware:
     def _is_flying(self, t: float) -> bool:
         return self._latest_thrust_t is not None and t - self._latest_thrust_t < IS_FLYING_HYSTERESIS
 
+    def _emergency_stop_reason(self, t: float) -> str | None:
+        if self._estop_requested:
+            return "emergency_stop"
+        # checkEmergencyStopWatchdog: ok while tick < latest + timeout.
+        if self._estop_watchdog_t is not None and t >= self._estop_watchdog_t + ESTOP_WATCHDOG_TIMEOUT - _TIME_TOL:
+            return "emergency_stop_watchdog"
+        return None
+
     def _supervisor_tick(self, t: float) -> None:
         age = t - self._setpoint.timestamp
         warning = age > WDT_LEVEL_OUT
         timeout = age > WDT_SHUTDOWN
         flying = self._is_flying(t)
         state = self._state
+        estop = self._emergency_stop_reason(t) if state in _MOTORS_ALLOWED else None
+        if estop is not None:
+            # Every state that may run the motors goes to ExceptFreeFall on an emergency stop
+            # (supervisor_state_machine.c); Landed gets there through Reset and pre-flight.
+            self._state = "except_free_fall"
+            self.lock_reason = estop
+            return
         if state in ("ready", "landed"):
             if flying:
                 state = "flying"
         elif state == "flying":
             if timeout:
                 state = "except_free_fall"
+                self.lock_reason = "commander_watchdog"
             elif warning:
                 state = "warning_level_out"
             elif not flying:
@@ -370,6 +446,7 @@ class Firmware:
         elif state == "warning_level_out":
             if timeout:
                 state = "except_free_fall"
+                self.lock_reason = "commander_watchdog"
             elif not warning:
                 state = "flying"
         elif state == "except_free_fall":

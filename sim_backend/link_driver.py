@@ -49,11 +49,19 @@ _TOC_ITEM_V2 = 2
 _TOC_INFO_V2 = 3
 _GENERIC_STOP = 0
 _META_NOTIFY_SETPOINT_STOP = 0
+_LOC_EMERGENCY_STOP, _LOC_EMERGENCY_STOP_WATCHDOG = 3, 4  # legacy (protocol < 12) channel
 _LOC_EXT_POSE = 8
 _HL_STOP = 3
 _PLATFORM_GET_PROTOCOL = 0
 _MEM_GET_COUNT = 1
 _SUPERVISOR_GET_BITFIELD = 0x0C
+_SUPERVISOR_EMERGENCY_STOP, _SUPERVISOR_EMERGENCY_STOP_WATCHDOG = 0x03, 0x04
+# Link-control channel 3 reaches the nRF51's power switch (cflib PowerSwitch: [0xfe, cmd, ...]).
+_BOOTLOADER_TARGET_NRF = 0xFE
+_POWER_ALL_OFF, _POWER_SYS_OFF, _POWER_SYS_ON = 0x01, 0x02, 0x03
+_POWER_RESET_INIT, _POWER_RESET = 0xFF, 0xF0
+# cflib's radio reports link statistics every 0.1 s (radio_link_statistics.py); so does the sim.
+LINK_STATS_PERIOD = 0.1
 _SUPERVISOR_RESPONSE = 0x80
 _LOG_DELETE, _LOG_START, _LOG_STOP, _LOG_RESET = 2, 3, 4, 5
 _LOG_CREATE_V2, _LOG_APPEND_V2 = 6, 7
@@ -162,6 +170,7 @@ PARAM_TOC: tuple[ParamDefinition, ...] = (
     ParamDefinition("locSrv", "extQuatStdDev", 0x06, 4.5e-3),
     ParamDefinition("pm", "lowVoltage", 0x06, 3.2),
     ParamDefinition("pm", "criticalLowVoltage", 0x06, 3.0),
+    ParamDefinition("kalman", "resetEstimation", 0x08, 0),
 )
 
 
@@ -202,8 +211,11 @@ def _pack_clamped(fmt: str, value: float) -> bytes:
 
 
 def parse_sim_uri(uri: str) -> str:
-    """Canonical ``sim://N``; raises ``SimLinkError`` if ``uri`` is a malformed sim URI."""
-    m = re.fullmatch(r"sim://(\d+)/?", uri.strip())
+    """Canonical ``sim://N``; raises ``SimLinkError`` if ``uri`` is a malformed sim URI.
+
+    Link options after ``?`` (cflib's ``PowerSwitch`` appends ``?safelink=0&...``) are ignored:
+    the simulated link has no packet loss to protect against."""
+    m = re.fullmatch(r"sim://(\d+)/?(\?[\w=&.-]*)?", uri.strip())
     if m is None:
         raise SimLinkError(f"malformed simulator URI {uri!r}: expected sim://N with N an integer")
     return f"{SCHEME}{int(m.group(1))}"
@@ -246,7 +258,7 @@ class _Endpoint:
             self._low_since = None
             self.pm_state = PM_BATTERY
         for driver in self.drivers:
-            driver._emit_logs(t)
+            driver._on_sim_step(t)
 
 
 _registry: dict[str, _Endpoint] = {}
@@ -323,6 +335,11 @@ class SimLinkDriver(CRTPDriver):
         self._incoming: queue.SimpleQueue[CRTPPacket | None] = queue.SimpleQueue()
         self._closed = True
         self._link_error_cb: Callable[[str], None] | None = None
+        self._link_stats_cb: Callable[[dict[str, float]], None] | None = None
+        self._stats_next_t = 0.0
+        self._stats_up = 0
+        self._stats_down = 0
+        self.power_commands = 0
         self._log_lock = threading.Lock()
         self._log_blocks: dict[int, _LogBlock] = {}
         self._logging = False  # any block started: the per-step check is this one flag
@@ -343,6 +360,8 @@ class SimLinkDriver(CRTPDriver):
             (_PORT_PARAM << 4) | 2: self._on_param_write,
             (_PORT_PARAM << 4) | 3: self._on_param_misc,
             (_PORT_SUPERVISOR << 4) | 0: self._on_supervisor_info,
+            (_PORT_SUPERVISOR << 4) | 1: self._on_supervisor_command,
+            (_PORT_LINK << 4) | 3: self._on_power_switch,
         }
 
     # --- CRTPDriver interface -------------------------------------------------------------
@@ -363,6 +382,9 @@ class SimLinkDriver(CRTPDriver):
         self._endpoint = endpoint
         self._sim = endpoint.sim
         self._link_error_cb = link_error_callback
+        self._link_stats_cb = radio_link_statistics_callback
+        self._stats_next_t = endpoint.sim.t + LINK_STATS_PERIOD
+        self._stats_up = self._stats_down = 0
         self._closed = False
         endpoint.attach(self)
 
@@ -459,6 +481,9 @@ class SimLinkDriver(CRTPDriver):
             sim.firmware.on_notify_setpoint_stop(sim.t)
 
     def _on_localization(self, data: bytearray) -> None:
+        if data[0] in (_LOC_EMERGENCY_STOP, _LOC_EMERGENCY_STOP_WATCHDOG):
+            self._emergency_stop(data[0] == _LOC_EMERGENCY_STOP_WATCHDOG)
+            return
         if data[0] != _LOC_EXT_POSE:
             self.unknown_packets += 1
             return
@@ -467,6 +492,44 @@ class SimLinkDriver(CRTPDriver):
         with sim.lock:
             sim.firmware.on_extpose(sim.t, (x, y, z), (qx, qy, qz, qw))
         self.extposes += 1
+
+    def _emergency_stop(self, watchdog: bool) -> None:
+        sim = self._sim
+        with sim.lock:
+            if watchdog:
+                sim.firmware.on_emergency_stop_watchdog(sim.t)
+            else:
+                sim.firmware.on_emergency_stop(sim.t)
+
+    def _on_supervisor_command(self, data: bytearray) -> None:
+        cmd = data[0]
+        if cmd not in (_SUPERVISOR_EMERGENCY_STOP, _SUPERVISOR_EMERGENCY_STOP_WATCHDOG):
+            self.unknown_packets += 1  # arming and crash recovery are not modelled
+            return
+        self._emergency_stop(cmd == _SUPERVISOR_EMERGENCY_STOP_WATCHDOG)
+
+    def _on_power_switch(self, data: bytearray) -> None:
+        """The nRF51's power commands: switch the simulated STM32 off, on, or reboot it."""
+        if data[0] != _BOOTLOADER_TARGET_NRF:
+            self.unknown_packets += 1  # bootloader traffic for the STM32 itself
+            return
+        cmd = data[1]
+        sim = self._sim
+        with sim.lock:
+            firmware = sim.firmware
+            if cmd in (_POWER_ALL_OFF, _POWER_SYS_OFF):
+                firmware.power_off(sim.t)
+            elif cmd == _POWER_SYS_ON:
+                firmware.power_on(sim.t)
+            elif cmd == _POWER_RESET and len(data) > 2 and data[2] == 1:  # reboot to firmware
+                firmware.power_off(sim.t)
+                firmware.power_on(sim.t)
+            elif cmd != _POWER_RESET_INIT:
+                self.unknown_packets += 1
+                return
+        self.power_commands += 1
+        # The nRF acknowledges; PowerSwitch waits for any reply before it moves on.
+        self._reply(_PORT_LINK, 3, bytes((_BOOTLOADER_TARGET_NRF, cmd)))
 
     def _on_high_level(self, data: bytearray) -> None:
         if data[0] != _HL_STOP:
@@ -590,10 +653,34 @@ class SimLinkDriver(CRTPDriver):
         block.started = True
         return 0
 
+    def _on_sim_step(self, t: float) -> None:
+        """Called after every simulator step: link statistics and log blocks that are due."""
+        if t >= self._stats_next_t - 1e-9:
+            self._report_link_statistics(t)
+        if self._logging:
+            self._emit_logs(t)
+
+    def _report_link_statistics(self, t: float) -> None:
+        """What cflib's radio driver reports (radio_link_statistics.py), for a lossless link.
+
+        Rates are packets per second of simulated time in each direction; a link with no
+        retries has link quality 100 (cflib: mean of 10 - retries, times 10).
+        """
+        up, down = self.packets_from_host, self.packets_to_host
+        period = LINK_STATS_PERIOD + (t - self._stats_next_t)
+        stats = {
+            "link_quality": 100.0,
+            "uplink_rate": (up - self._stats_up) / period,
+            "downlink_rate": (down - self._stats_down) / period,
+        }
+        self._stats_up, self._stats_down = up, down
+        self._stats_next_t = t + LINK_STATS_PERIOD
+        cb = self._link_stats_cb
+        if cb is not None and not self._closed:
+            cb(stats)
+
     def _emit_logs(self, t: float) -> None:
-        """Called after every simulator step: send each started block that is due."""
-        if not self._logging:
-            return
+        """Send each started log block that is due."""
         with self._log_lock:
             endpoint = self._endpoint
             stamp = int(round(t * 1000.0)) & 0xFFFFFF

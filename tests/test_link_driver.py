@@ -56,6 +56,18 @@ class RecordingFirmware:
     def on_extpose(self, t: float, pos: tuple, quat_xyzw: tuple) -> None:
         self._record("extpose", t, pos, quat_xyzw)
 
+    def on_emergency_stop(self, t: float) -> None:
+        self._record("estop", t)
+
+    def on_emergency_stop_watchdog(self, t: float) -> None:
+        self._record("estop_watchdog", t)
+
+    def power_off(self, t: float) -> None:
+        self._record("power_off", t)
+
+    def power_on(self, t: float) -> None:
+        self._record("power_on", t)
+
 
 class FakeSim:
     """The SimCrazyflie surface the driver uses, with a clock the test steps by hand."""
@@ -395,5 +407,93 @@ def test_real_simulator_behind_stock_cflib() -> None:
             assert samples[-1]["supervisor.info"] == supervisor_bitfield("flying")
             assert samples[-1]["pm.vbat"] == pytest.approx(sim.battery_voltage, abs=0.05)
             assert samples[-1]["pm.vbat"] < samples[0]["pm.vbat"]  # sags under the motors' load
+    finally:
+        unregister_simulator(uri)
+
+
+# --- supervisor commands, the power switch, link statistics (the hardware radio's needs) ------
+
+
+def test_emergency_stop_and_its_watchdog_are_decoded(connected: tuple[FakeSim, Crazyflie]) -> None:
+    sim, cf = connected
+    sim.t = 3.0
+    cf.supervisor.send_emergency_stop_watchdog()  # port 9 channel 1, protocol >= 12
+    sim.t = 3.2
+    cf.supervisor.send_emergency_stop()
+    sim.t = 3.4
+    cf.send_packet(CRTPPacket(0x61, bytes((4,))))  # the legacy localization channel (protocol < 12)
+    cf.send_packet(CRTPPacket(0x61, bytes((3,))))
+    before = cf.link.unknown_packets
+    cf.send_packet(CRTPPacket(0x91, bytes((0x01, 1))))  # arming request: not modelled
+    assert sim.firmware.calls == [("estop_watchdog", 3.0), ("estop", 3.2), ("estop_watchdog", 3.4), ("estop", 3.4)]
+    assert all(sim.firmware.lock_held)
+    assert cf.link.unknown_packets == before + 1
+
+
+def test_cflib_power_switch_reaches_the_simulated_stm32(sim_uri: tuple[FakeSim, str]) -> None:
+    from cflib.utils.power_switch import PowerSwitch
+
+    sim, uri = sim_uri
+    sim.t = 7.0
+    switch = PowerSwitch(uri)  # cflib appends ?safelink=0&autoping=0&ackfilter=0 to the URI
+    try:
+        switch.stm_power_down()
+        switch.stm_power_up()
+        switch.reboot_to_fw()
+    finally:
+        switch.close()
+    assert sim.firmware.calls == [("power_off", 7.0), ("power_on", 7.0), ("power_off", 7.0), ("power_on", 7.0)]
+
+
+def test_link_options_in_the_uri_are_accepted_and_malformed_ones_not() -> None:
+    from cfknode.sim_backend.link_driver import parse_sim_uri
+
+    assert parse_sim_uri("sim://3?safelink=0&autoping=0&ackfilter=0") == "sim://3"
+    assert parse_sim_uri(" sim://04/ ") == "sim://4"
+    with pytest.raises(SimLinkError, match="malformed"):
+        parse_sim_uri("sim://3?bad value")
+
+
+def test_link_statistics_reach_cflib_callbacks(connected: tuple[FakeSim, Crazyflie]) -> None:
+    sim, cf = connected
+    quality: list[float] = []
+    uplink: list[float] = []
+    cf.link_statistics.link_quality_updated.add_callback(quality.append)
+    cf.link_statistics.uplink_rate_updated.add_callback(uplink.append)
+    for k in range(30):  # 30 setpoints over 0.3 s of sim time: 100 packets/s up
+        cf.commander.send_setpoint(0.0, 0.0, 0.0, 0)
+        sim.step_to((k + 1) * 0.01)
+    assert quality and all(q == 100.0 for q in quality)
+    assert uplink and 95.0 <= uplink[-1] <= 135.0  # setpoints plus cflib's own pings (wall clock)
+
+
+def test_stock_cflib_signs_and_thrust_clamp_on_the_real_simulator() -> None:
+    """Acceptance: through cflib and sim://, +pitch is nose down (+x), +roll is right side down
+    (-y), +yaw rate turns clockwise, thrust is clamped to 60000 and zeroed below 1000."""
+    from cfknode.config import load_config
+    from cfknode.models.quadrotor import quat_to_euler_zyx
+    from cfknode.sim_backend.crazyflie import SimCrazyflie
+
+    sim = SimCrazyflie(load_config())
+    uri = f"sim://{next(_uris)}"
+    register_simulator(uri, sim)
+    try:
+        with SyncCrazyflie(uri, cf=Crazyflie()) as scf:
+            cf, fw = scf.cf, sim.firmware
+            cf.commander.send_setpoint(0.0, 0.0, 0.0, 0)  # unlock
+            cf.commander.send_setpoint(0.0, 0.0, 0.0, 65535)
+            assert fw.last_setpoint.thrust == 60000  # RPYT MAX_THRUST
+            cf.commander.send_setpoint(0.0, 0.0, 0.0, 999)
+            assert fw.last_setpoint.thrust == 0  # below MIN_THRUST
+            with pytest.raises(ValueError):
+                cf.commander.send_setpoint(0.0, 0.0, 0.0, 70000)  # cflib refuses it before the wire
+            for k in range(60):  # climb with +pitch, +roll and +yaw rate for 0.6 s
+                cf.commander.send_setpoint(3.0, 3.0, 45.0, 46000)
+                sim.step_to((k + 1) * 0.01)
+            x, y, z = sim.state[:3]
+            vx, vy = sim.state[3:5]
+            _, _, yaw = quat_to_euler_zyx(sim.state[6:10])
+            assert z > 0.02 and vx > 0.02 and vy < -0.02
+            assert yaw < -0.1  # clockwise seen from above
     finally:
         unregister_simulator(uri)

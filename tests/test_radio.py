@@ -11,7 +11,7 @@ import pytest
 
 from cfknode.config import load_config
 from cfknode.flight.mellinger import AttitudeSetpoint
-from cfknode.flight.radio import CflibRadio, RadioError
+from cfknode.flight.radio import CflibRadio, HardwareRadio, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
 
 _uris = itertools.count(9300)
@@ -45,6 +45,9 @@ class ThreadRecordingFirmware:
 
     def on_extpose(self, t: float, pos: tuple, quat_xyzw: tuple) -> None:
         self._record("extpose", t, pos, quat_xyzw)
+
+    def on_emergency_stop_watchdog(self, t: float) -> None:
+        self._record("heartbeat", t)
 
     def named(self, name: str) -> list[tuple[Any, ...]]:
         return [c for c in self.calls if c[0] == name]
@@ -282,3 +285,165 @@ def test_flies_the_real_simulator_and_hands_it_back_unlocked() -> None:
     finally:
         radio.shutdown()
         unregister_simulator(uri)
+
+
+# --- the hardware radio ------------------------------------------------------------------------
+
+PARAMS = {"stabilizer.estimator": 2, "stabilizer.controller": 1, "locSrv.extPosStdDev": 1e-3,
+          "locSrv.extQuatStdDev": 0.05}
+
+
+@pytest.fixture
+def real_sim(tmp_path: Any) -> Iterator[tuple[Any, str]]:
+    from cfknode.sim_backend.crazyflie import SimCrazyflie
+
+    sim, uri = SimCrazyflie(load_config()), f"sim://{next(_uris)}"
+    register_simulator(uri, sim)
+    yield sim, uri
+    unregister_simulator(uri)
+
+
+def hardware_radio(sim: Any, uri: str, tmp_path: Any, **kwargs: Any) -> HardwareRadio:
+    options: dict[str, Any] = dict(params=PARAMS, heartbeat_hz=5.0, lockstep=True, clock=lambda: sim.t,
+                                   advance=sim.step_to, rw_cache=str(tmp_path))
+    options.update(kwargs)
+    return HardwareRadio(uri, **options)
+
+
+def fly_lockstep(radio: CflibRadio, sim: Any, seconds: float, sp: AttitudeSetpoint) -> None:
+    """400 Hz ticks: set the setpoint, pump, step the simulator."""
+    period = 1.0 / 400.0
+    t0 = sim.t
+    for k in range(int(round(seconds / period))):
+        radio.set_setpoint(sp)
+        radio.pump(t0 + k * period)
+        sim.step_to(t0 + (k + 1) * period)
+
+
+def test_hardware_radio_sets_parameters_and_resets_the_estimator(real_sim: tuple[Any, str], tmp_path: Any) -> None:
+    from cfknode.sim_backend.link_driver import PARAM_TOC, _registry
+
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path, params={**PARAMS, "pm.lowVoltage": 3.3})
+    radio.connect(timeout=5.0)
+    try:
+        values = dict(zip((f"{p.group}.{p.name}" for p in PARAM_TOC), _registry[uri].param_values))
+        assert values["stabilizer.estimator"] == 2 and values["stabilizer.controller"] == 1
+        assert values["locSrv.extPosStdDev"] == pytest.approx(1e-3) and values["locSrv.extQuatStdDev"] == pytest.approx(0.05)
+        assert values["pm.lowVoltage"] == pytest.approx(3.3)
+        assert radio.protocol_version == 12 and radio.heartbeat_enabled
+        radio.reset_estimator()
+        assert values["kalman.resetEstimation"] == 0
+        assert dict(zip((f"{p.group}.{p.name}" for p in PARAM_TOC), _registry[uri].param_values))[
+            "kalman.resetEstimation"] == 0  # set to 1, then back to 0, each confirmed
+        assert not sim.firmware.thrust_locked  # the unlock went out after the parameters
+    finally:
+        radio.shutdown()
+
+
+def test_a_parameter_the_firmware_lacks_is_one_line_and_leaves_nothing_open(real_sim: tuple[Any, str], tmp_path: Any) -> None:
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path, params={"stabilizer.estimatr": 2}, lockstep=False)
+    with pytest.raises(RadioError) as info:
+        radio.connect(timeout=5.0)
+    assert str(info.value) == f"{uri} has no parameter 'stabilizer.estimatr' (firmware too old, or a typo?)"
+    assert radio.cf is None and sim.firmware.setpoints_received == 0  # never unlocked
+    assert not any(t.name.startswith("radio-tx") for t in threading.enumerate())
+    radio.shutdown()  # a no-op
+
+
+def test_telemetry_and_link_statistics_snapshots(real_sim: tuple[Any, str], tmp_path: Any) -> None:
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path, telemetry_hz=20.0)
+    radio.connect(timeout=5.0)
+    try:
+        assert radio.telemetry() is None
+        fly_lockstep(radio, sim, 0.5, AttitudeSetpoint(0.0, 0.0, 0.0, 0))
+        assert wait_for(lambda: radio.telemetry() is not None and radio.telemetry().samples >= 10)
+        tel = radio.telemetry()
+        assert tel.vbat == pytest.approx(sim.battery_voltage, abs=0.02)
+        assert tel.pm_state == 0 and tel.rssi > 0
+        assert tel.supervisor_info & 0b1000  # can fly
+        assert tel.firmware_ms == pytest.approx(500, abs=50)
+        assert wait_for(lambda: radio.link_statistics().latency_ms is not None)
+        link = radio.link_statistics()
+        assert link.link_quality == 100.0 and link.uplink_rate > 90.0 and link.downlink_rate > 15.0
+        assert radio.stats().latency_ms == link.latency_ms  # what the safety layer's link watchdog reads
+        assert link.packets_sent == radio.stats().setpoints_sent + radio.stats().heartbeats_sent
+    finally:
+        radio.shutdown()
+
+
+def test_heartbeat_at_its_rate_in_lockstep(real_sim: tuple[Any, str], tmp_path: Any) -> None:
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path, reboot_after_heartbeat=False)
+    radio.connect(timeout=5.0)
+    fly_lockstep(radio, sim, 1.0, AttitudeSetpoint(0.0, 0.0, 0.0, 0))
+    assert radio.stats().heartbeats_sent == 5  # 5 Hz over 1 s of pumps
+    assert sim.firmware.estop_watchdog_notifications == 5
+    radio.shutdown()
+    # The armed watchdog stops and locks the drone 1 s after the last heartbeat, landed or not.
+    assert radio.handback_note.startswith("the emergency-stop watchdog is armed")
+    sim.step_to(sim.t + 0.5)
+    assert sim.firmware.supervisor_state == "idle"
+    sim.step_to(sim.t + 1.0)
+    assert sim.firmware.supervisor_state == "locked"
+    assert sim.firmware.lock_reason == "emergency_stop_watchdog"
+
+
+def test_flight_then_hand_back_with_reboot_leaves_the_drone_unlocked(real_sim: tuple[Any, str], tmp_path: Any) -> None:
+    """Acceptance: fly on the heartbeat, land, shut down: the firmware is neither locked by the
+    commander watchdog (hand-back to the stopped HL planner) nor by the emergency-stop
+    watchdog (the reboot through the nRF51 clears it)."""
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path)
+    radio.connect(timeout=5.0)
+    fly_lockstep(radio, sim, 0.6, AttitudeSetpoint(0.0, 0.0, 0.0, 46000))
+    assert sim.firmware.supervisor_state == "flying" and sim.state[2] > 0.02
+    fly_lockstep(radio, sim, 1.0, AttitudeSetpoint(0.0, 0.0, 0.0, 0))  # motors off: it falls and lands
+    assert radio.stats().heartbeats_sent == 8
+    radio.shutdown()
+    assert radio.handback_note is None and radio.stats().send_errors == 0
+    fw = sim.firmware
+    assert fw.boots == 2 and fw.powered
+    sim.step_to(sim.t + 3.0)
+    assert fw.supervisor_state == "idle" and fw.lock_reason is None
+    assert not fw.estop_watchdog_active
+
+
+def test_no_heartbeat_below_protocol_12(real_sim: tuple[Any, str], tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import cfknode.sim_backend.link_driver as link_driver
+
+    monkeypatch.setattr(link_driver, "PROTOCOL_VERSION", 11)
+    sim, uri = real_sim
+    radio = hardware_radio(sim, uri, tmp_path)
+    radio.connect(timeout=5.0)
+    assert radio.protocol_version == 11 and not radio.heartbeat_enabled
+    fly_lockstep(radio, sim, 0.5, AttitudeSetpoint(0.0, 0.0, 0.0, 0))
+    radio.shutdown()
+    assert radio.stats().heartbeats_sent == 0 and sim.firmware.estop_watchdog_notifications == 0
+    assert sim.firmware.boots == 1  # nothing armed, nothing to reboot
+
+
+def test_threaded_heartbeat_and_extposes_fed_from_the_mocap_thread(sim_uri: tuple[FakeSim, str], tmp_path: Any) -> None:
+    sim, uri = sim_uri
+    radio = HardwareRadio(uri, params={}, heartbeat_hz=20.0, lockstep=False, rw_cache=str(tmp_path),
+                          reboot_after_heartbeat=False)
+    radio.connect(timeout=2.0)
+    caller = threading.get_ident()
+    try:
+        assert wait_for(lambda: len(sim.firmware.named("heartbeat")) >= 3)
+        radio.set_extpose(np.array([9.0, 9.0, 9.0]), np.array([1.0, 0.0, 0.0, 0.0]))  # the loop's copy
+        assert wait_for(lambda: len(sim.firmware.named("extpose")) == 1)
+        feeder = threading.Thread(target=radio.feed_extpose, args=(np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, 0.0, 1.0])))
+        feeder.start()
+        feeder.join()
+        assert wait_for(lambda: len(sim.firmware.named("extpose")) == 2)
+        radio.set_extpose(np.array([9.0, 9.0, 9.0]), np.array([1.0, 0.0, 0.0, 0.0]))  # now redundant
+        threading.Event().wait(0.05)
+        assert len(sim.firmware.named("extpose")) == 2
+        assert sim.firmware.named("extpose")[1][2:] == ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0, 0.0))
+    finally:
+        radio.shutdown()
+    heartbeat_threads = {tid for (name, *_), tid in zip(sim.firmware.calls, sim.firmware.threads) if name == "heartbeat"}
+    assert caller not in heartbeat_threads and len(heartbeat_threads) == 1  # the TX thread
