@@ -132,6 +132,37 @@ class TrainingConfig:
 
 
 @dataclass(frozen=True)
+class FaultInjection:
+    """Test hooks for online learning: the trainer fails at this round (0 = never)."""
+
+    crash_at_round: int
+    hang_at_round: int
+    nan_at_round: int
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    enabled: bool
+    t_col: float
+    epochs: int
+    lr: float
+    weight_decay: float
+    warm_start: bool
+    replay_windows: int
+    paper_lockstep: bool
+    gate: bool
+    gate_min_pairs: int
+    gate_control_gain: tuple[float, float]
+    gate_max_velocity_gain: float
+    trainer_timeout: float
+    max_restarts: int
+    start_time: float
+    rollback_ticks: int
+    rollback_fallbacks: int
+    inject: FaultInjection
+
+
+@dataclass(frozen=True)
 class RadioConfig:
     uri: str
     tx_rate_hz: float
@@ -140,6 +171,87 @@ class RadioConfig:
 @dataclass(frozen=True)
 class LogConfig:
     dir: str
+
+
+@dataclass(frozen=True)
+class DashboardConfig:
+    enabled: bool
+    refresh_hz: float
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    enabled: bool
+    estop_dir: str
+    fence_min: Vec3
+    fence_max: Vec3
+    fence_margin: float
+    fence_stop_distance: float
+    mocap_hold_s: float
+    mocap_stop_s: float
+    hold_thrust_factor: float
+    link_silence_s: float
+    link_max_latency_s: float
+    overrun_ticks: int
+    solve_deadline_s: float
+    battery_takeoff_min_v: float
+    battery_land_v: float
+    battery_filter_s: float
+    max_tilt_deg: float
+    tumble_s: float
+    max_tracking_error: float
+    tracking_error_s: float
+    max_fallback_s: float
+    land_speed: float
+    touchdown_height: float
+    preflight_timeout_s: float
+    start_tolerance: float
+
+
+@dataclass(frozen=True)
+class FaultWindow:
+    t: float
+    duration: float
+
+
+@dataclass(frozen=True)
+class Gust:
+    t: float
+    duration: float
+    wind: Vec3
+
+
+@dataclass(frozen=True)
+class FaultsConfig:
+    mocap_outages: tuple[FaultWindow, ...]
+    radio_outages: tuple[FaultWindow, ...]
+    solver_failures: tuple[FaultWindow, ...]
+    nan_model_at: float
+    battery_drop_at: float
+    battery_drop_to: float
+    gusts: tuple[Gust, ...]
+    sigint_at: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class HardwareConfig:
+    robot: str
+    robots_file: str
+    mocap_type: Literal["vicon", "optitrack", "qualisys", "vrpn", "mock"]
+    mocap_host: str
+    mocap_connect_timeout: float
+    mocap_rate_hz: float
+    radio_connect_timeout: float
+    preflight_settle: float
+    preflight_position_tolerance: float
+    preflight_max_tilt_deg: float
+    force: bool
+    extpos_std: float
+    extquat_std: float
+    heartbeat_hz: float
+    reboot_after_heartbeat: bool
+    telemetry_hz: float
+    rw_cache: str
 
 
 @dataclass(frozen=True)
@@ -152,8 +264,13 @@ class Config:
     sim: SimConfig
     knode: KnodeConfig
     training: TrainingConfig
+    online: OnlineConfig
     radio: RadioConfig
     log: LogConfig
+    dashboard: DashboardConfig
+    safety: SafetyConfig
+    faults: FaultsConfig
+    hardware: HardwareConfig
 
     def to_dict(self) -> dict[str, Any]:
         return _plain(dataclasses.asdict(self))
@@ -183,7 +300,42 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("training.epochs", lambda v: v >= 1, ">= 1"),
     ("training.lr", lambda v: v > 0, "> 0"),
     ("training.validation_fraction", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("online.t_col", lambda v: 0 < v <= 60, "in (0, 60] s"),
+    ("online.epochs", lambda v: v >= 1, ">= 1"),
+    ("online.lr", lambda v: v > 0, "> 0"),
+    ("online.weight_decay", lambda v: v >= 0, ">= 0"),
+    ("online.replay_windows", lambda v: 0 <= v <= 20, "in 0..20"),
+    ("online.gate_min_pairs", lambda v: v >= 2, ">= 2"),
+    ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
+    ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
+    ("online.max_restarts", lambda v: v >= 0, ">= 0"),
+    ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),
+    ("online.rollback_fallbacks", lambda v: v >= 1, ">= 1"),
     ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
+    ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
+    ("safety.fence_margin", lambda v: v >= 0, ">= 0"),
+    ("safety.fence_stop_distance", lambda v: v > 0, "> 0"),
+    ("safety.mocap_hold_s", lambda v: v > 0, "> 0"),
+    ("safety.hold_thrust_factor", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("safety.link_silence_s", lambda v: v > 0, "> 0"),
+    ("safety.overrun_ticks", lambda v: v >= 1, ">= 1"),
+    ("safety.battery_filter_s", lambda v: v > 0, "> 0"),
+    ("safety.max_tilt_deg", lambda v: 0 < v < 180, "in (0, 180)"),
+    ("safety.max_tracking_error", lambda v: v > 0, "> 0"),
+    ("safety.max_fallback_s", lambda v: v > 0, "> 0"),
+    ("safety.land_speed", lambda v: v > 0, "> 0"),
+    ("safety.preflight_timeout_s", lambda v: v > 0, "> 0"),
+    ("faults.battery_drop_to", lambda v: v > 0, "> 0 V"),
+    ("hardware.mocap_connect_timeout", lambda v: v > 0, "> 0 s"),
+    ("hardware.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000] Hz"),
+    ("hardware.radio_connect_timeout", lambda v: v > 0, "> 0 s"),
+    ("hardware.preflight_settle", lambda v: 0.2 <= v <= 30, "in [0.2, 30] s"),
+    ("hardware.preflight_position_tolerance", lambda v: v > 0, "> 0 m"),
+    ("hardware.preflight_max_tilt_deg", lambda v: 0 < v < 90, "in (0, 90)"),
+    ("hardware.extpos_std", lambda v: v > 0, "> 0 m"),
+    ("hardware.extquat_std", lambda v: v > 0, "> 0"),
+    ("hardware.heartbeat_hz", lambda v: v == 0 or 2 <= v <= 50, "0 (off) or in [2, 50] Hz (the firmware allows 1 s)"),
+    ("hardware.telemetry_hz", lambda v: 0.4 <= v <= 100, "in [0.4, 100] Hz (log periods 10..2540 ms)"),
 )
 
 

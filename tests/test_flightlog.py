@@ -39,6 +39,16 @@ SAMPLES: dict[str, dict] = {
     "/mocap": {"p": np.array([0.1, -0.2, 1.0]), "q": np.array([0.9998, 0.0, 0.0, 0.02]), "received": True,
                "stamp": 1.2475},
     "/events": {"level": "warning", "text": "mocap frame late by 12 ms", "source": "mocap"},
+    "/safety": {"state": "TRACK", "reason": "", "pose_age_s": 0.012, "fence_margin_m": 0.9, "tracking_error_m": 0.004,
+                "battery_v": 3.82, "link_silence_s": 0.0, "fallback_ticks": 0},
+    "/model": {"version": np.int64(3), "event": "swap", "val_error": 0.021, "swap_ms": 0.31, "queue": [1, 2, 3],
+               "round": 3, "window": [6.1, 6.6], "val_error_current": 0.034, "val_error_nominal": 0.05,
+               "max_residual": 4.2, "val_pairs": 44, "train_wall_s": 0.11, "latency_s": 0.12, "install_ms": 0.6,
+               "slice_ms": 0.2, "control_gain": [0.7, 1.1], "velocity_gain": -0.2},
+    "/training": {"round": 3, "version": 3, "window": [6.1, 6.6], "ok": True, "base_version": 2, "pairs": 200,
+                  "loss": 1.7, "val_rmse_model": 0.012, "val_rmse_nominal": 0.031,
+                  "max_abs_residual": 4.2, "train_wall_s": 0.11, "train_cpu_s": 0.1, "latency_s": 0.12, "t_col": 0.5,
+                  "error": ""},
     "/summary": {"mse": 0.0012, "window": [2.0, 10.0], "log_path": None},
 }
 
