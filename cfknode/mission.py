@@ -27,6 +27,7 @@ from cfknode.flight.mpc import TranslationalMpc
 from cfknode.flight.radio import CflibRadio
 from cfknode.flight.summary import FlightSummary, compute_summary
 from cfknode.flight.trajectory import make_trajectory
+from cfknode.flight.status import StatusTap
 from cfknode.safety.operator import EstopMailbox, mailbox_dir
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
 from cfknode.safety.watchdogs import radio_link_status, worst_link
@@ -70,94 +71,161 @@ def build_model_slot(cfg: Config) -> ModelSlot | None:
     return ModelSlot(queue, version=1)
 
 
+@dataclass
+class Session:
+    """What a backend hands the flight: the same shape for the simulator and for hardware."""
+
+    config: Config  # the flight's config (on hardware: with the robot's mass and limits)
+    clock: Any
+    mocap: Any
+    radio: Any
+    start_position: np.ndarray
+    truth: Callable[[], np.ndarray] | None
+    battery_voltage: Callable[[], float | None]
+    link_status: Callable[[float], Any]
+    wrap_controller: Callable[[Any], Any] = lambda mpc: mpc
+    fault_observers: Callable[[ModelSlot | None], list[TickObserver]] = lambda model: []
+    events: tuple[dict[str, Any], ...] = ()  # logged before take-off (pre-flight checks)
+    after_handback: Callable[[], dict[str, Any]] = dict  # summary extras once the drone is handed back
+
+
 def run_flight(
     cfg: Config,
     name_hint: str = "flight",
     observers: Sequence[TickObserver] = (),
     on_supervisor: Callable[[Supervisor], None] | None = None,
+    dashboard: Any = None,
 ) -> FlightResult:
     """Fly one mission with the configured backend and return its summary.
 
     ``observers`` get every tick (a training recorder, a dashboard); the injected faults'
     observers run after them. ``on_supervisor(supervisor)`` is called once before take-off,
-    for operator controls outside the loop (the dashboard's e-stop key calls its
-    ``request_land()`` / ``request_stop()``).
+    for operator controls outside the loop. ``dashboard`` is a rich Console to draw the live
+    dashboard on (None: headless); its space and q keys land the drone.
     """
-    if cfg.backend != "sim":
-        raise ConfigError("backend 'cf' (hardware) is not available in this version; use --backend sim")
-    if not cfg.radio.uri.startswith("sim://"):
-        raise ConfigError(f"config key 'radio.uri' must be a sim:// URI with backend sim, got {cfg.radio.uri!r}")
-    from cfknode.sim_backend.faults import check_faults
+    if cfg.backend == "sim":
+        if not cfg.radio.uri.startswith("sim://"):
+            raise ConfigError(f"config key 'radio.uri' must be a sim:// URI with backend sim, got {cfg.radio.uri!r}")
+        from cfknode.sim_backend.faults import check_faults
 
-    check_faults(cfg)
-    model = build_model_slot(cfg)
+        check_faults(cfg)
+        flight_cfg, session = cfg, _sim_session(cfg)
+    else:
+        from cfknode.hardware import HARDWARE_ERRORS, flight_config, robot_for
+
+        try:
+            flight_cfg = flight_config(cfg, robot_for(cfg))  # the robot's mass and limits
+        except HARDWARE_ERRORS as exc:
+            raise MissionError(str(exc)) from exc
+        session = _cf_session(cfg, dashboard)
+    model = build_model_slot(flight_cfg)
     loaded_model = model is not None
     if model is None and cfg.faults.nan_model_at >= 0:
         model = ModelSlot(None)  # nominal until the injected model is swapped in
-    mpc = build_controller(cfg)  # built (and compiled) before the clock starts
-    with _sim_backend(cfg) as (sim, mocap, radio, clock, faults):
-        trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
-        link = radio_link_status(radio)
-        if faults.link_status is not None:
-            link = worst_link(link, faults.link_status)
-        with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as log:
-            supervisor = Supervisor.from_config(
-                cfg,
-                radio,
-                trajectory=trajectory,
-                log=log,
-                deadlines_apply=not clock.lockstep,
-                inputs=SupervisorInputs(battery_voltage=lambda: sim.battery_voltage, link_status=link),
-            )
-            parts = FlightParts(
-                clock=clock,
-                mocap=mocap,
-                estimator=VelocityEstimator(cfg.estimator),
-                trajectory=trajectory,
-                mpc=faults.controller(mpc, clock.now),
-                supervisor=supervisor,
-                log=log,
-                vehicle=cfg.vehicle,
-                controller=cfg.controller,
-                truth=lambda: sim.state,
-                model=model,
-                observers=[*observers, *faults.observers(model)],
-                estop=EstopMailbox(mailbox_dir(cfg.safety.estop_dir), cfg.hardware.robot),
-            )
-            if on_supervisor is not None:
-                on_supervisor(supervisor)
-            record = asyncio.run(fly(parts))
-            radio.shutdown()
-            firmware_after = _firmware_after_handback(sim, clock)
-            outcome = supervisor.outcome()
-            summary = compute_summary(
-                t=record.t,
-                p=record.p,
-                p_ref=record.p_ref,
-                compute_s=record.compute_s,
-                solve_s=record.solve_s,
-                missed=record.missed,
-                window=trajectory.pattern_window,
-                wall_time=record.wall_time,
-                log_path=str(log.path),
-                extra={
-                    "outcome": outcome.message,
-                    "safety_state": outcome.state.value,
-                    "safety_cause": outcome.cause,
-                    "fallback_ticks": record.fallbacks,
-                    "fallback_reasons": dict(record.fallback_reasons),
-                    "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
-                    "controller": "knode-mpc" if loaded_model else cfg.controller.kind,
-                    "model": cfg.controller.model or None,
-                    "solver": cfg.controller.solver if mpc is not None else "none",
-                    "lockstep": not cfg.sim.realtime,
-                    "mocap_dropouts": mocap.stats().dropouts,
-                    "firmware_after_shutdown": firmware_after,
-                    "vehicle_after_shutdown": _vehicle_after(sim),
-                },
-            )
-            log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
+    mpc = build_controller(flight_cfg)  # built (and compiled) before the clock starts
+    with session as sess:
+        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard)
+
+
+def _fly_session(
+    sess: Session,
+    name_hint: str,
+    model: ModelSlot | None,
+    loaded_model: bool,
+    mpc: TranslationalMpc | None,
+    observers: Sequence[TickObserver],
+    on_supervisor: Callable[[Supervisor], None] | None,
+    dashboard: Any,
+) -> FlightResult:
+    cfg = sess.config
+    trajectory = make_trajectory(cfg.trajectory, sess.start_position)
+    status = _dashboard_status(cfg) if dashboard is not None else None
+    with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
+        log: Any = flight_log if status is None else StatusTap(flight_log, status)
+        for event in sess.events:
+            log.write("/events", 0.0, event)
+        supervisor = Supervisor.from_config(
+            cfg,
+            sess.radio,
+            trajectory=trajectory,
+            log=log,
+            deadlines_apply=not sess.clock.lockstep,
+            inputs=SupervisorInputs(battery_voltage=sess.battery_voltage, link_status=sess.link_status),
+        )
+        parts = FlightParts(
+            clock=sess.clock,
+            mocap=sess.mocap,
+            estimator=VelocityEstimator(cfg.estimator),
+            trajectory=trajectory,
+            mpc=sess.wrap_controller(mpc),
+            supervisor=supervisor,
+            log=log,
+            vehicle=cfg.vehicle,
+            controller=cfg.controller,
+            truth=sess.truth,
+            model=model,
+            observers=[*observers, *([status] if status is not None else []), *sess.fault_observers(model)],
+            estop=EstopMailbox(mailbox_dir(cfg.safety.estop_dir), cfg.hardware.robot),
+        )
+        if on_supervisor is not None:
+            on_supervisor(supervisor)
+        flight = fly(parts)
+        if status is not None:
+            flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
+        record = asyncio.run(flight)
+        sess.radio.shutdown()
+        outcome = supervisor.outcome()
+        summary = compute_summary(
+            t=record.t,
+            p=record.p,
+            p_ref=record.p_ref,
+            compute_s=record.compute_s,
+            solve_s=record.solve_s,
+            missed=record.missed,
+            window=trajectory.pattern_window,
+            wall_time=record.wall_time,
+            log_path=str(flight_log.path),
+            extra={
+                "outcome": outcome.message,
+                "safety_state": outcome.state.value,
+                "safety_cause": outcome.cause,
+                "fallback_ticks": record.fallbacks,
+                "fallback_reasons": dict(record.fallback_reasons),
+                "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
+                "controller": "knode-mpc" if loaded_model else cfg.controller.kind,
+                "model": cfg.controller.model or None,
+                "solver": cfg.controller.solver if mpc is not None else "none",
+                "backend": cfg.backend,
+                "lockstep": bool(sess.clock.lockstep),
+                "mocap_dropouts": sess.mocap.stats().dropouts,
+                **sess.after_handback(),
+            },
+        )
+        log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
     return FlightResult(summary=summary, record=record, outcome=outcome)
+
+
+def _dashboard_status(cfg: Config) -> Any:
+    from cfknode.flight.status import FlightStatus
+
+    t, c = cfg.trajectory, cfg.controller
+    return FlightStatus(c.rate_hz, title=f"{t.kind} r={t.radius} m - {c.kind} ({c.solver})")
+
+
+def _with_dashboard(flight: Any, status: Any, console: Any, sess: Session, supervisor: Supervisor, cfg: Config) -> Any:
+    """Wrap the flight coroutine so the dashboard draws beside it; space and q land the drone."""
+    from cfknode.flight.dashboard import with_dashboard
+    from cfknode.flight.status import battery_poller, mocap_poller, radio_poller
+
+    status.add_poller(mocap_poller(sess.mocap))
+    status.add_poller(radio_poller(sess.radio))
+    status.add_poller(battery_poller(lambda: sess.battery_voltage() or float("nan")))
+
+    def on_key(key: str) -> None:
+        if key in ("space", "q"):
+            supervisor.request_land(f"operator e-stop key ({key})")
+
+    return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz)
 
 
 def _vehicle_after(sim: Any) -> dict[str, Any]:
@@ -181,7 +249,7 @@ def _firmware_after_handback(sim, clock) -> str:
 
 
 @contextlib.contextmanager
-def _sim_backend(cfg: Config) -> Iterator[tuple]:
+def _sim_session(cfg: Config) -> Iterator[Session]:
     """The simulated Crazyflie behind the real cflib path: sim:// driver, simulated mocap, a clock,
     and the configured faults installed around them."""
     from cfknode.mocap.simulated import SimulatedMocap
@@ -203,15 +271,69 @@ def _sim_backend(cfg: Config) -> Iterator[tuple]:
         advance=sim.step_to if clock.lockstep else None,
         rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
     )
+    link = radio_link_status(radio)
+    if faults.link_status is not None:
+        link = worst_link(link, faults.link_status)
     stepper = None
     try:
         radio.connect()
         if cfg.sim.realtime:
             stepper = RealtimeStepper(sim, clock.now).start()
-        yield sim, mocap, radio, clock, faults
+        yield Session(
+            config=cfg,
+            clock=clock,
+            mocap=mocap,
+            radio=radio,
+            start_position=np.asarray(cfg.sim.initial_position, dtype=float),
+            truth=lambda: sim.state,
+            battery_voltage=lambda: sim.battery_voltage,
+            link_status=link,
+            wrap_controller=lambda mpc: faults.controller(mpc, clock.now),
+            fault_observers=faults.observers,
+            after_handback=lambda: {
+                "firmware_after_shutdown": _firmware_after_handback(sim, clock),
+                "vehicle_after_shutdown": _vehicle_after(sim),
+            },
+        )
     finally:
         radio.shutdown()
         if stepper is not None:
             stepper.stop()
         mocap.close()
         unregister_simulator(cfg.radio.uri)
+
+
+@contextlib.contextmanager
+def _cf_session(cfg: Config, console: Any) -> Iterator[Session]:
+    """A Crazyflie over cflib with mocap over ``motioncapture`` (or the simulator behind sim://)."""
+    from rich.console import Console
+
+    from cfknode.hardware import HARDWARE_ERRORS, cf_session
+
+    try:
+        with cf_session(cfg, console=console or Console(stderr=True)) as hw:
+
+            def battery() -> float | None:
+                telemetry = hw.radio.telemetry()
+                return telemetry.vbat if telemetry is not None else None
+
+            def after() -> dict[str, Any]:
+                extra: dict[str, Any] = {"preflight": hw.preflight.to_dict(), "handback": hw.radio.handback_note}
+                if hw.sim is not None:
+                    extra["firmware_after_shutdown"] = hw.sim.firmware.supervisor_state
+                return extra
+
+            yield Session(
+                config=hw.config,
+                clock=hw.clock,
+                mocap=hw.mocap,
+                radio=hw.radio,
+                start_position=hw.start_position,
+                truth=hw.truth,
+                battery_voltage=battery,
+                link_status=radio_link_status(hw.radio),
+                events=tuple(hw.preflight.events()),
+                after_handback=after,
+            )
+    except HARDWARE_ERRORS as exc:
+        raise MissionError(str(exc)) from exc

@@ -222,3 +222,17 @@ def test_a_disabled_robot_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="robot 'cf5' is disabled"):
         with cf_session(cfg):
             pass
+
+
+def test_run_flight_with_backend_cf_against_the_simulator(tmp_path: Path) -> None:
+    """`cfknode fly --backend cf` takes the same mission path as the simulator: run_flight end to end."""
+    from cfknode.mission import run_flight
+
+    res = run_flight(cf_config(tmp_path), name_hint="cf-run-flight")
+    # A loaded machine may push a few wall-clock solves past their deadline: the fallback flies those.
+    assert res.outcome.message.startswith("flight complete: landed"), res.outcome.message
+    extra = res.summary.extra
+    assert extra["backend"] == "cf" and not extra["lockstep"]
+    assert extra["preflight"]["ok"], extra["preflight"]
+    assert extra["firmware_after_shutdown"] != "locked"
+    assert res.summary.max_error < 0.1

@@ -24,6 +24,10 @@ FLAGS: dict[str, str] = {
     "seed": "sim.seed",
     "uri": "radio.uri",
     "log_dir": "log.dir",
+    "robot": "hardware.robot",
+    "robots": "hardware.robots_file",
+    "mocap": "hardware.mocap_type",
+    "mocap_host": "hardware.mocap_host",
 }
 
 
@@ -33,9 +37,18 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
 
 
+def add_hardware_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", choices=["sim", "cf"])
+    p.add_argument("--robot", help="robot in the robots file (also the mocap rigid-body name)")
+    p.add_argument("--robots", help="Crazyswarm2-style robots YAML (default: the packaged example)")
+    p.add_argument("--mocap", choices=["vicon", "optitrack", "qualisys", "vrpn", "mock"], help="motion capture type")
+    p.add_argument("--mocap-host", dest="mocap_host", help="motion capture host name or address")
+    p.add_argument("--force", action="store_true", help="fly despite failed pre-flight checks (logged)")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p)
-    p.add_argument("--backend", choices=["sim", "cf"])
+    add_hardware_arguments(p)
     p.add_argument("--traj", choices=["hover", "circle", "figure8"], help="trajectory kind")
     p.add_argument("--radius", type=float, help="pattern radius [m]")
     p.add_argument("--speed", type=float, help="pattern speed [m/s]")
@@ -49,6 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-dir", dest="log_dir", help="directory for the flight log")
     p.add_argument("--realtime", action="store_true", help="simulate against the wall clock instead of lockstep")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--headless", action="store_true", help="fly without the live dashboard")
     p.add_argument("--name", default=None, help="name hint for the log file")
 
 
@@ -60,6 +74,8 @@ def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) ->
             overrides[key] = value
     if getattr(args, "realtime", False):
         overrides["sim.realtime"] = True
+    if getattr(args, "force", False):
+        overrides["hardware.force"] = True
     for item in args.set:
         key, value = parse_override(item)
         overrides[key] = value
@@ -70,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)  # validate before importing the heavy parts
     from rich.console import Console
 
+    from cfknode.flight.dashboard import should_show_dashboard
     from cfknode.flight.summary import render_summary, summary_to_json
     from cfknode.mission import MissionError, run_flight
 
@@ -80,8 +97,9 @@ def run(args: argparse.Namespace) -> int:
             f"[bold]cfknode fly[/]: {cfg.backend} backend, {t.kind} r={t.radius} m at {t.speed} m/s for "
             f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
         )
+    show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
     try:
-        result = run_flight(cfg, name_hint=args.name or t.kind)
+        result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1
@@ -89,4 +107,7 @@ def run(args: argparse.Namespace) -> int:
         print(summary_to_json(result.summary))
     else:
         render_summary(result.summary, console)
-    return 0
+    # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
+    print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
+    # 0 only for a mission flown to the end; a watchdog landing, a stop or a refusal is 1.
+    return 0 if result.outcome.state.value == "LANDED" and result.outcome.cause == "complete" else 1
