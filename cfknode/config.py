@@ -349,7 +349,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     """Defaults, then the YAML file at ``path``, then dotted-key ``overrides``."""
     data = default_dict()
     if path is not None:
-        data = _merge(data, _read_yaml(Path(path)), prefix="")
+        data = _merge(data, read_yaml_mapping(Path(path)), prefix="")
     for key, value in (overrides or {}).items():
         data = _merge(data, _nest(key, value), prefix="")
     return build_config(data)
@@ -376,19 +376,20 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def read_yaml_mapping(path: Path, what: str = "config file") -> dict[str, Any]:
+    """A YAML file holding a mapping; a missing file or bad YAML is a one-line ConfigError naming it."""
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(f"{what} not found: {path}")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"config file {path}{where} is not valid YAML") from None
+        raise ConfigError(f"{what} {path}{where} is not valid YAML") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"config file {path} must hold a mapping at the top level")
+        raise ConfigError(f"{what} {path} must hold a mapping at the top level")
     return data
 
 

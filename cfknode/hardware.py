@@ -29,7 +29,13 @@ import numpy as np
 from cfknode.config import Config, ConfigError
 from cfknode.flight.clock import WallClock
 from cfknode.flight.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
-from cfknode.mocap.motioncapture_source import Connector, MocapError, MotioncaptureSource
+from cfknode.mocap.motioncapture_source import (
+    Connector,
+    MocapError,
+    MotioncaptureSource,
+    SdkQuaternion,
+    SdkRigidBody,
+)
 from cfknode.robots import Robot, load_robot
 from cfknode.safety.preflight import PreflightError, PreflightReport, PreflightSnapshot, enforce, render_table, run_checks
 
@@ -186,21 +192,6 @@ def _snapshot(cfg: Config, robot: Robot, radio: HardwareRadio, mocap: Motioncapt
 # --- the simulator behind the hardware path ------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class _Quaternion:
-    w: float
-    x: float
-    y: float
-    z: float
-
-
-@dataclass(frozen=True)
-class _RigidBody:
-    name: str
-    position: np.ndarray
-    rotation: _Quaternion
-
-
 class SimulatedMotionCapture:
     """The ``motioncapture`` object API (``waitForNextFrame``, ``rigidBodies``) served by a
     simulator stepping in another thread: a frame every ``1 / rate_hz`` of sim time, sampled
@@ -220,12 +211,12 @@ class SimulatedMotionCapture:
         self._latency = latency
         self._dropout = dropout_prob
         self._rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x6863,)))
-        self._pending: deque[tuple[float, dict[str, _RigidBody]]] = deque()
+        self._pending: deque[tuple[float, dict[str, SdkRigidBody]]] = deque()
         self._cond = threading.Condition()
         self._seq = 0
         self._consumed = 0
-        self._ready: dict[str, _RigidBody] = {}
-        self._bodies: dict[str, _RigidBody] = {}
+        self._ready: dict[str, SdkRigidBody] = {}
+        self._bodies: dict[str, SdkRigidBody] = {}
         self._closed = False
         sim.add_step_observer(self._on_step)
 
@@ -242,13 +233,13 @@ class SimulatedMotionCapture:
                     self._seq += 1
                 self._cond.notify_all()
 
-    def _sample(self, state: np.ndarray) -> dict[str, _RigidBody]:
+    def _sample(self, state: np.ndarray) -> dict[str, SdkRigidBody]:
         rng = self._rng
         if self._dropout > 0.0 and rng.random() < self._dropout:
             return {}
         position = state[0:3] + self._pos_noise * rng.standard_normal(3)
         w, x, y, z = _rotate(state[6:10], self._att_noise * rng.standard_normal(3))
-        return {self._name: _RigidBody(self._name, position.astype(np.float32), _Quaternion(w, x, y, z))}
+        return {self._name: SdkRigidBody(self._name, position.astype(np.float32), SdkQuaternion(w, x, y, z))}
 
     def waitForNextFrame(self) -> None:  # noqa: N802 (the SDK's name)
         with self._cond:
@@ -259,7 +250,7 @@ class SimulatedMotionCapture:
             self._bodies = self._ready
 
     @property
-    def rigidBodies(self) -> dict[str, _RigidBody]:  # noqa: N802 (the SDK's name)
+    def rigidBodies(self) -> dict[str, SdkRigidBody]:  # noqa: N802 (the SDK's name)
         return self._bodies
 
     def close(self) -> None:

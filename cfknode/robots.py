@@ -27,7 +27,7 @@ from typing import Any, Mapping
 
 import yaml
 
-from cfknode.config import ConfigError, VehicleConfig
+from cfknode.config import ConfigError, VehicleConfig, read_yaml_mapping
 
 FILEVERSION = 3
 CMD_FULL_SCALE = 65535  # the motor command at which a motor gives thrust_max_per_motor
@@ -137,17 +137,7 @@ def load_robot(path: str | Path | None, name: str) -> Robot:
 
 
 def _read(file: Path) -> dict[str, Any]:
-    if not file.is_file():
-        raise ConfigError(f"robots file not found: {file}")
-    try:
-        data = yaml.safe_load(file.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"robots file {file}{where} is not valid YAML") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"robots file {file} must hold a mapping at the top level")
-    return data
+    return read_yaml_mapping(file, "robots file")
 
 
 def _mapping(value: Any, where: str, key: str) -> dict[str, Any]:

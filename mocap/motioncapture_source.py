@@ -138,7 +138,9 @@ def _child_main(mocap_type: str, cfg: dict[str, str], out: Any) -> None:
 
 
 @dataclass(frozen=True)
-class _Quaternion:
+class SdkQuaternion:
+    """A quaternion shaped like motioncapture's (``.w .x .y .z``), for stand-ins of the SDK."""
+
     w: float
     x: float
     y: float
@@ -146,10 +148,12 @@ class _Quaternion:
 
 
 @dataclass(frozen=True)
-class _RigidBody:
+class SdkRigidBody:
+    """A rigid body shaped like motioncapture's (``.name .position .rotation``)."""
+
     name: str
-    position: tuple[float, float, float]
-    rotation: _Quaternion
+    position: Any  # 3 floats, meters (the SDK gives a float32 array)
+    rotation: SdkQuaternion
 
 
 class SubprocessMotionCapture:
@@ -166,7 +170,7 @@ class SubprocessMotionCapture:
         )
         self._fd = self._proc.stdout.fileno()
         self._buffer = b""
-        self._bodies: dict[str, _RigidBody] = {}
+        self._bodies: dict[str, SdkRigidBody] = {}
         self.frame_monotonic: float | None = None
         self._closed = False
         try:
@@ -209,11 +213,11 @@ class SubprocessMotionCapture:
                 break
         self.frame_monotonic = float(msg["t"])
         self._bodies = {
-            b[0]: _RigidBody(b[0], (b[1], b[2], b[3]), _Quaternion(b[4], b[5], b[6], b[7])) for b in msg["b"]
+            b[0]: SdkRigidBody(b[0], (b[1], b[2], b[3]), SdkQuaternion(b[4], b[5], b[6], b[7])) for b in msg["b"]
         }
 
     @property
-    def rigidBodies(self) -> dict[str, _RigidBody]:  # noqa: N802 (the SDK's name)
+    def rigidBodies(self) -> dict[str, SdkRigidBody]:  # noqa: N802 (the SDK's name)
         return self._bodies
 
     def close(self) -> None:
