@@ -1,0 +1,145 @@
+"""Wiring for online learning: config -> trainer process + ``OnlineLearner`` observer for one flight.
+
+Mission wiring (``run_flight``) uses it in three lines::
+
+    model = online_model_slot(cfg, build_model_slot(cfg))      # a slot even when starting nominal
+    with start_trainer(cfg) as trainer:                        # pre-flight, before the clock starts
+        ...                                                    # (backend, log, clock as today)
+        with online_session(cfg, model, log, clock, trainer) as online:
+            parts = FlightParts(..., model=model, observers=[online] if online else [])
+            record = asyncio.run(fly(parts))
+            extra.update(online.summary_fields() if online else {})
+
+``start_trainer`` exists because a wall clock starts running when the backend is built: a
+trainer still importing torch then would eat the take-off. In lockstep ``online_session``
+can start the trainer itself (the virtual clock waits).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import Any, Iterator
+
+from cfknode.config import Config, ConfigError
+from cfknode.flight.model_slot import ModelSlot
+from cfknode.flight.online import GateLimits, LearnerSettings, OnlineLearner, TrainerClient, operating_envelope
+from cfknode.models.trainer_process import TrainerSettings
+
+# Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
+READY_TIMEOUT_S = 120.0
+
+
+def check_online(cfg: Config) -> None:
+    """Refuse configurations online learning cannot fly (one-line ``ConfigError``)."""
+    if not cfg.online.enabled:
+        return
+    if cfg.controller.kind == "geometric":
+        raise ConfigError("online.enabled needs an MPC (controller.kind mpc or knode-mpc), not geometric")
+    if cfg.online.paper_lockstep and cfg.sim.realtime:
+        raise ConfigError("online.paper_lockstep stops the simulation for every model: it needs lockstep (not --realtime)")
+    if cfg.online.paper_lockstep and cfg.backend != "sim":
+        raise ConfigError("online.paper_lockstep is a simulation-only reproduction mode")
+
+
+def online_model_slot(cfg: Config, slot: ModelSlot | None) -> ModelSlot | None:
+    """The slot online learning swaps into: the given one, or an empty (nominal) one."""
+    if not cfg.online.enabled or slot is not None:
+        return slot
+    return ModelSlot(None, version=0)
+
+
+def trainer_settings(cfg: Config) -> TrainerSettings:
+    """Each round: the ``training`` section with the online epochs, learning rate and weight decay."""
+    o = cfg.online
+    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay)
+    return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
+
+
+def learner_settings(cfg: Config, lockstep: bool) -> LearnerSettings:
+    o = cfg.online
+    return LearnerSettings(
+        t_col=o.t_col,
+        period=1.0 / cfg.controller.rate_hz,
+        lockstep=lockstep,
+        paper_lockstep=o.paper_lockstep,
+        gate=o.gate,
+        gate_min_pairs=o.gate_min_pairs,
+        replay_windows=o.replay_windows,
+        start_time=o.start_time,
+        rollback_ticks=o.rollback_ticks,
+        rollback_fallbacks=o.rollback_fallbacks,
+        max_restarts=o.max_restarts,
+        limits=gate_limits(cfg),
+        filter_hz=cfg.training.velocity_filter_hz,
+        holdout_fraction=cfg.training.validation_fraction,
+        queue_size=cfg.knode.queue_size,
+    )
+
+
+def gate_limits(cfg: Config) -> GateLimits:
+    """The gate's plausibility limits on the MPC's operating envelope: its input box and twice the pattern speed."""
+    from cfknode.flight.mpc import acceleration_bounds
+
+    bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
+    x, u = operating_envelope(2.0 * cfg.trajectory.speed + 0.5, bounds.lower, bounds.upper)
+    return GateLimits(cfg.knode.max_residual, cfg.online.gate_control_gain, cfg.online.gate_max_velocity_gain, x, u)
+
+
+@contextlib.contextmanager
+def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | None]:
+    """The trainer process for one flight (None when online learning is off); stopped on exit."""
+    check_online(cfg)
+    if not cfg.online.enabled:
+        yield None
+        return
+    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout)
+    client.start()
+    try:
+        if wait and not client.wait_ready(READY_TIMEOUT_S):
+            raise ConfigError(f"online trainer did not start within {READY_TIMEOUT_S:g} s (see its stderr)")
+        yield client
+    finally:
+        client.close()
+
+
+@contextlib.contextmanager
+def online_session(
+    cfg: Config, slot: ModelSlot | None, log: Any, clock: Any, trainer: TrainerClient | None = None
+) -> Iterator[OnlineLearner | None]:
+    """The loop observer that learns in flight (None when online learning is off).
+
+    ``trainer``: one from ``start_trainer`` (pre-flight). Without it one is started here; in
+    lockstep this waits until it is up (the virtual clock does not run meanwhile), on a wall
+    clock it does not wait and the first windows queue until the trainer reports ready.
+    """
+    check_online(cfg)
+    if not cfg.online.enabled:
+        yield None
+        return
+    if slot is None:
+        raise ConfigError("online learning needs a model slot: use online_model_slot(cfg, slot)")
+    base = None
+    if cfg.controller.model:
+        from cfknode.models.modelfile import ModelFileError, load_model
+
+        try:
+            base = load_model(cfg.controller.model)  # the queue the flight starts with, as the trainer's base
+        except ModelFileError as exc:
+            raise ConfigError(f"refusing to fly: {exc}") from None
+    with contextlib.ExitStack() as stack:
+        if trainer is None:
+            trainer = stack.enter_context(start_trainer(cfg, wait=bool(clock.lockstep)))
+        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep)), slot, trainer, log, base)
+        yield learner
+
+
+__all__ = [
+    "check_online",
+    "gate_limits",
+    "learner_settings",
+    "online_model_slot",
+    "online_session",
+    "start_trainer",
+    "trainer_settings",
+]

@@ -1,0 +1,273 @@
+"""The online trainer: a child process that trains one new KNODE network per data window (the paper's Algorithm 2).
+
+The flight process starts it with the ``spawn`` context and talks to it over one duplex
+``multiprocessing`` pipe. This module's top level is torch-free, so the flight process can name
+``trainer_main`` as the process target and use the message types below; torch is imported
+only inside ``trainer_main``, i.e. only in the child.
+
+Protocol (every message a picklable frozen dataclass of numpy arrays and plain values):
+- child -> parent, once: ``TrainerReady`` after torch is imported and one warm-up round has run
+  (the first round in a fresh interpreter is ~10x slower; paying that before take-off keeps
+  the first honest latency honest about training, not about imports);
+- parent -> child: ``TrainRequest`` (at most one outstanding; the parent enforces it), or
+  ``None`` to stop;
+- child -> parent: one ``TrainOutcome`` per request, with the new queue as a numpy
+  ``ModelFile`` (or ``error`` set when the round failed in an ordinary way, e.g. too little data).
+
+A round: the window (and optionally a few recent ones, each its own segment) becomes a
+dataset with ``make_dataset``; a network is pushed onto the queue the window was flown with
+(``base``; oldest dropped when full, older ones frozen) and trained with ``train``. A warm
+start copies the newest network and refits its normalisation to the new data while keeping
+the function it computes, so Adam's steps are scaled for the new data (a mass change
+multiplies the residual by 20 where the old output scale was fitted to a residual of ~0).
+
+Fault injection (``FaultInjection``, config ``online.inject``) acts on the request's round
+number, which the parent counts across restarts: crash = ``os._exit``, hang = sleep forever,
+nan = the trained network's output layer becomes NaN.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, replace
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from cfknode.config import FaultInjection, KnodeConfig, TrainingConfig
+from cfknode.models.modelfile import ModelFile, Normalisation
+
+CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)
+# Online input scales are floored at the flight envelope, not one window's spread: a 0.5 s
+# window barely varies (v, u), and standardising by that spread lets the network fit steep,
+# spurious slopes (measured: dr/dv up to +2.4 1/s, dr/du down to -0.9 where the truth was 0
+# and -0.23) that the MPC then trusts over its whole horizon. At envelope scale a window
+# spans a small input range, so the fit stays close to an offset unless slopes pay off.
+ONLINE_VELOCITY_SCALE = 1.0  # m/s
+ONLINE_ACCELERATION_SCALE = 3.0  # m/s^2
+
+
+@dataclass(frozen=True)
+class Window:
+    """One recorded window: t (n,), x = (p, v) (n, 6), u = commanded acceleration (n, 3)."""
+
+    index: int  # the recorder's window counter (across the flight)
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    version: int  # model version that flew the whole window
+
+    @property
+    def t0(self) -> float:
+        return float(self.t[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.t[-1])
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """What every round uses; fixed for the process's life."""
+
+    knode: KnodeConfig
+    training: TrainingConfig  # with the online epochs, lr and weight decay
+    warm_start: bool
+    inject: FaultInjection
+
+
+@dataclass(frozen=True)
+class TrainRequest:
+    round: int  # 1, 2, ... across the flight (and across trainer restarts)
+    version: int  # version the candidate will carry
+    window: Window  # the newest window: the one this round learns from
+    replay: tuple[Window, ...]  # earlier windows trained on as well (oldest first)
+    base: ModelFile | None  # the queue the window was flown with (None: nominal)
+    holdout_fraction: float  # the last fraction of the window is held out (0: train on all of it)
+
+
+@dataclass(frozen=True)
+class TrainerReady:
+    pid: int
+    warmup_s: float  # wall time of the warm-up round
+
+
+@dataclass(frozen=True)
+class TrainOutcome:
+    round: int
+    version: int
+    base_version: int  # version of the base queue (taken from the request's window)
+    model: ModelFile | None  # None when the round failed
+    window_t0: float
+    window_t1: float
+    train_t1: float  # last sample time trained on (< window_t1 when the tail was held out)
+    pairs: int  # training pairs
+    loss: float  # final data loss, (m/s^2)^2
+    val_rmse_model: float  # trainer's held-out one-step velocity RMSE, m/s (NaN without a holdout)
+    val_rmse_nominal: float
+    max_abs_residual: float  # m/s^2 over the training inputs
+    wall_s: float  # wall time of the whole round in the child (dataset + training + export)
+    cpu_s: float  # CPU time of the round in the child
+    error: str = ""  # non-empty: the round failed (model is None)
+
+
+def trainer_main(conn: Connection, settings: TrainerSettings) -> None:
+    """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF."""
+    import torch
+
+    # One thread: two on these shared 2-core machines slowed small batches 4-80x (solver-timings.md),
+    # and the other core is the flight loop's.
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    # A few epochs pay the first-call costs (autograd, allocator); more would only delay take-off.
+    _train_round(_warmup_request(), replace(settings, training=replace(settings.training, epochs=3)))
+    conn.send(TrainerReady(os.getpid(), time.perf_counter() - start))
+    while True:
+        try:
+            request = conn.recv()
+        except (EOFError, OSError):
+            return  # the flight process is gone
+        if request is None:
+            return
+        _maybe_fail_before(request.round, settings.inject)
+        outcome = _train_round(request, settings)
+        conn.send(outcome)
+
+
+def _maybe_fail_before(round_: int, inject: FaultInjection) -> None:
+    if round_ == inject.crash_at_round > 0:
+        os._exit(CRASH_EXIT_CODE)
+    if round_ == inject.hang_at_round > 0:
+        while True:  # a hung trainer: only a kill ends it
+            time.sleep(3600.0)
+
+
+def _train_round(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
+    """Train one candidate; ordinary failures come back as an outcome with ``error`` set."""
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    base_version = request.window.version
+    try:
+        outcome = _train(request, settings)
+    except (ValueError, RuntimeError, FloatingPointError) as exc:
+        w = request.window
+        return TrainOutcome(
+            request.round, request.version, base_version, None, w.t0, w.t1, w.t1, 0, math.nan, math.nan, math.nan,
+            math.nan, time.perf_counter() - wall0, time.process_time() - cpu0, error=" ".join(str(exc).split()) or type(exc).__name__,
+        )
+    return replace(outcome, wall_s=time.perf_counter() - wall0, cpu_s=time.process_time() - cpu0)
+
+
+def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
+    import torch
+
+    from cfknode.models.knode import KnodeQueue, from_torch_queue, to_torch_queue
+    from cfknode.models.training import Pairs, Segment, fit_normalisation, make_dataset, train
+
+    w = request.window
+    segments = [Segment(r.t, r.x, r.u, source=f"window{r.index}") for r in (*request.replay, w)]
+    # make_dataset holds out the tail of every segment it is given, but only the newest window's
+    # tail is held out for the gate: the replayed windows become a dataset of their own, all trained on.
+    dataset = make_dataset(segments[-1:], settings.training.velocity_filter_hz, request.holdout_fraction)
+    if len(segments) > 1:
+        older = make_dataset(segments[:-1], settings.training.velocity_filter_hz, 0.0)
+        dataset = replace(
+            dataset,
+            train=Pairs.concat([older.train, dataset.train]),
+            t0=min(older.t0, dataset.t0),
+            sources=older.sources + dataset.sources,
+        )
+    norm = online_normalisation(fit_normalisation(dataset))
+    seed = settings.training.seed + request.round
+    base = request.base
+    if base is None or not base.networks:
+        queue = KnodeQueue.from_config(settings.knode, norm, seed=seed)
+        queue.push()
+    else:
+        queue = to_torch_queue(base, seed=seed)
+        if settings.warm_start:
+            net = queue.push(copy_from_newest=True)
+            renormalise(net, norm)
+        else:
+            queue.push(normalisation=norm)
+    result = train(queue, dataset, settings.training)
+    if request.round == settings.inject.nan_at_round > 0:
+        with torch.no_grad():
+            queue.newest.layers[-1].weight.fill_(float("nan"))
+    model = from_torch_queue(
+        queue,
+        training=result.training_info(dataset),
+        extra={"version": request.version, "round": request.round, "base_version": w.version},
+    )
+    train_t1 = float(dataset.train.t0[-1] + dataset.train.dt[-1]) if len(dataset.train) else w.t1
+    return TrainOutcome(
+        round=request.round,
+        version=request.version,
+        base_version=w.version,
+        model=model,
+        window_t0=w.t0,
+        window_t1=w.t1,
+        train_t1=train_t1,
+        pairs=len(dataset.train),
+        loss=result.loss,
+        val_rmse_model=result.val_rmse_model,
+        val_rmse_nominal=result.val_rmse_nominal,
+        max_abs_residual=result.max_abs_residual,
+        wall_s=0.0,
+        cpu_s=0.0,
+    )
+
+
+def online_normalisation(fitted: Normalisation) -> Normalisation:
+    """``fitted`` with its input scales raised to the online floors (see ONLINE_VELOCITY_SCALE)."""
+    floors = np.array([ONLINE_VELOCITY_SCALE] * 3 + [ONLINE_ACCELERATION_SCALE] * 3)
+    return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), fitted.output_scale)
+
+
+def renormalise(net: Any, norm: Normalisation) -> None:
+    """Give a ``ResidualNet`` new input/output normalisation without changing the function it computes.
+
+    First layer: W (z - m)/s + b = W' (z - m')/s' + b' with W' = W s'/s, b' = b + W (m' - m)/s.
+    Output: s_o (W h + b) = s_o' (W'' h + b'') with W'' = W s_o/s_o', b'' = b s_o/s_o'.
+    """
+    import torch
+
+    with torch.no_grad():
+        dtype = net.input_mean.dtype
+        m_new = torch.as_tensor(norm.input_mean, dtype=dtype)
+        s_new = torch.as_tensor(norm.input_scale, dtype=dtype)
+        o_new = torch.as_tensor(norm.output_scale, dtype=dtype)
+        first, last = net.layers[0], net.layers[-1]
+        first.bias.add_(first.weight @ ((m_new - net.input_mean) / net.input_scale))
+        first.weight.mul_((s_new / net.input_scale)[None, :])
+        gain = net.output_scale / o_new
+        last.weight.mul_(gain[:, None])
+        last.bias.mul_(gain)
+        net.input_mean.copy_(m_new)
+        net.input_scale.copy_(s_new)
+        net.output_scale.copy_(o_new)
+
+
+def _warmup_request() -> TrainRequest:
+    """A small synthetic round (hover with a constant residual) to pay torch's first-call costs."""
+    n = 120
+    t = np.arange(n) / 400.0
+    u = np.zeros((n, 3))
+    v = np.zeros((n, 3))
+    v[:, 2] = 0.5 * t  # v' = u + 0.5 m/s^2
+    x = np.concatenate((np.zeros((n, 3)), v), axis=1)
+    return TrainRequest(0, 0, Window(0, t, x, u, 0), (), None, 0.0)
+
+
+__all__ = [
+    "CRASH_EXIT_CODE",
+    "TrainOutcome",
+    "TrainRequest",
+    "TrainerReady",
+    "TrainerSettings",
+    "Window",
+    "renormalise",
+    "trainer_main",
+]

@@ -1,0 +1,216 @@
+"""Online learning, flight side without a flight: window recorder, numpy one-step prediction, validation gate."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from cfknode.flight.online import GateLimits, WindowRecorder, gate_pairs, one_step_rmse, operating_envelope, run_gate
+from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
+from cfknode.models.residual_np import ResidualQueue
+
+RATE = 400.0
+G = 9.81
+
+
+@dataclass(frozen=True)
+class Est:
+    p: np.ndarray
+    v: np.ndarray
+
+
+@dataclass(frozen=True)
+class Tick:
+    t: float
+    est: Est | None
+    acc: np.ndarray
+    source: str = "mpc"
+    model_version: int = 0
+
+
+def tick(t: float, z: float = 1.0, version: int = 0, source: str = "mpc") -> Tick:
+    return Tick(t, Est(np.array([0.0, 0.0, z]), np.array([0.1, 0.0, 0.0])), np.zeros(3), source, version)
+
+
+def constant_residual_model(r: np.ndarray, hidden: int = 4) -> ModelFile:
+    """A one-network queue whose residual is the constant ``r`` (zero hidden weights, output bias only)."""
+    w0, b0 = np.zeros((hidden, 6)), np.zeros(hidden)
+    w1, b1 = np.zeros((3, hidden)), np.asarray(r, dtype=float)
+    return ModelFile((hidden,), "tanh", 3, (NetworkWeights(((w0, b0), (w1, b1)), Normalisation.identity()),))
+
+
+def linear_residual_model(gain_v: np.ndarray, gain_u: np.ndarray, eps: float = 1e-3) -> ModelFile:
+    """r ~= gain_v @ v + gain_u @ u: tanh kept in its linear range by tiny input weights."""
+    w0 = eps * np.eye(6)
+    w1 = np.concatenate((gain_v, gain_u), axis=1) / eps
+    return ModelFile((6,), "tanh", 3, (NetworkWeights(((w0, np.zeros(6)), (w1, np.zeros(3))), Normalisation.identity()),))
+
+
+def limits(max_residual: float = 20.0) -> GateLimits:
+    x, u = operating_envelope(1.3, np.array([-5.66, -5.66, -4.9]), np.array([5.66, 5.66, 3.83]))
+    return GateLimits(max_residual, (0.25, 4.0), 1.0, x, u)
+
+
+def flown_data(residual: np.ndarray, n: int = 240, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 400 Hz record of v' = u + residual with a wandering command and mocap-like velocity noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / RATE
+    u = np.stack([0.5 * np.sin(3 * t), 0.3 * np.cos(2 * t), 0.2 * np.sin(5 * t)], axis=1)
+    v = np.zeros((n, 3))
+    for i in range(n - 1):
+        v[i + 1] = v[i] + (u[i] + residual) / RATE
+    p = np.cumsum(v, axis=0) / RATE
+    x = np.concatenate((p, v + rng.normal(scale=2e-4, size=v.shape)), axis=1)
+    return t, x, u
+
+
+# --- recorder ----------------------------------------------------------------------------------
+
+
+def on_ground(rec: WindowRecorder) -> WindowRecorder:
+    rec.add(tick(-1.0, z=0.0))  # the first estimate is where the flight starts: the ground
+    return rec
+
+
+def test_recorder_cuts_windows_of_t_col() -> None:
+    rec = on_ground(WindowRecorder(t_col=0.5, rate_hz=RATE))
+    windows = [w for k in range(800) if (w := rec.add(tick(k / RATE))) is not None]
+    assert len(windows) == 3  # 800 ticks = 2 s; each window takes 201 ticks (t_col spanned exactly)
+    for w in windows:
+        assert w.t1 - w.t0 == pytest.approx(0.5)
+        assert w.x.shape == (201, 6) and w.u.shape == (201, 3)
+    assert windows[1].t0 > windows[0].t1  # consecutive, no overlap
+    assert [w.index for w in windows] == [1, 2, 3]
+
+
+def test_recorder_skips_ground_and_non_mpc_ticks_and_breaks_the_run() -> None:
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE)
+    rec.add(tick(0.0, z=0.0))  # first estimate: the ground
+    assert rec.add(tick(0.0025, z=0.05)) is None  # below MIN_HEIGHT above the ground
+    out = [rec.add(tick(0.01 + k / RATE)) for k in range(60)]
+    assert not any(w is not None for w in out)  # 60 ticks < one 0.25 s window
+    rec.add(tick(0.2, source="fallback"))  # a fallback tick ends the run: the partial window goes
+    assert rec.discarded == 1
+    windows = [w for k in range(120) if (w := rec.add(tick(0.3 + k / RATE))) is not None]
+    assert len(windows) == 1 and windows[0].t0 == pytest.approx(0.3)
+
+
+def test_a_window_never_spans_a_model_change() -> None:
+    rec = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE))
+    windows = []
+    for k in range(400):
+        version = 0 if k < 150 else 1  # someone swapped the model between tick 149 and 150
+        if k == 150:
+            rec.reset()  # what the learner does on its own swaps
+        w = rec.add(tick(k / RATE, version=version))
+        if w is not None:
+            windows.append(w)
+    assert len(windows) == 3 and rec.discarded == 1  # 1 before the change, 2 after; the partial one dropped
+    for w in windows:
+        assert w.t1 < 150 / RATE or w.t0 >= 150 / RATE
+        assert w.version == (0 if w.t1 < 150 / RATE else 1)
+    # Even without the reset, a version change seen in the ticks ends the run.
+    rec2 = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE))
+    spans = [w for k in range(400) if (w := rec2.add(tick(k / RATE, version=int(k >= 150)))) is not None]
+    assert len(spans) == 3 and all(w.t1 < 150 / RATE or w.t0 >= 150 / RATE for w in spans)
+
+
+def test_recorder_fresh_data_and_long_runs() -> None:
+    rec = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE, keep_s=1.0))
+    for k in range(2000):  # 5 s: the buffer compacts several times
+        rec.add(tick(k / RATE))
+    t, x, u = rec.fresh(4.9)
+    assert t[0] > 4.9 and t[-1] == pytest.approx(1999 / RATE)
+    assert x.shape == (t.size, 6) and np.all(np.diff(t) > 0)
+    assert rec.windows == 2000 // 101  # 101 ticks per 0.25 s window
+
+
+# --- one-step prediction and gate ---------------------------------------------------------------
+
+
+def test_one_step_prediction_is_exact_for_the_true_constant_residual() -> None:
+    r = np.array([0.0, 0.0, 2.0])
+    t, x, u = flown_data(r)
+    x[:, 3:6] = np.cumsum(np.vstack([np.zeros(3), (u[:-1] + r) / RATE]), axis=0)  # noise-free
+    pairs = gate_pairs(t, x, u, filter_hz=0.0)
+    true_model = ResidualQueue.from_model_file(constant_residual_model(r))
+    assert one_step_rmse(true_model, pairs) < 1e-12
+    assert one_step_rmse(None, pairs) == pytest.approx(2.0 / RATE / math.sqrt(3), rel=1e-9)
+
+
+def test_gate_accepts_a_better_candidate_and_rejects_a_worse_one() -> None:
+    r = np.array([0.0, 0.0, 3.0])
+    t, x, u = flown_data(r)
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    good_file, bad_file = constant_residual_model(r), constant_residual_model(-r)
+    good, bad = ResidualQueue.from_model_file(good_file), ResidualQueue.from_model_file(bad_file)
+
+    better = run_gate(good_file, good, None, fresh, x, u, limits())
+    assert better.accepted and better.reason == ""
+    assert better.rmse_candidate < 0.2 * better.rmse_current
+    assert better.rmse_nominal == better.rmse_current  # nominal is flying
+
+    worse = run_gate(bad_file, bad, good, fresh, x, u, limits())
+    assert not worse.accepted and "not better on held-out data" in worse.reason
+    assert worse.rmse_candidate > worse.rmse_current
+
+    same = run_gate(good_file, good, good, fresh, x, u, limits())
+    assert not same.accepted  # "better than the model now flying", not as good
+
+
+def test_gate_rejects_non_finite_and_unbounded_models() -> None:
+    t, x, u = flown_data(np.zeros(3))
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    nan_file = constant_residual_model([0.0, 0.0, math.nan])
+    verdict = run_gate(nan_file, ResidualQueue.from_model_file(nan_file), None, fresh, x, u, limits())
+    assert not verdict.accepted and verdict.reason == "non-finite weights"
+
+    big_file = constant_residual_model([0.0, 0.0, 25.0])
+    verdict = run_gate(big_file, ResidualQueue.from_model_file(big_file), None, fresh, x, u, limits())
+    assert not verdict.accepted and "exceeds knode.max_residual" in verdict.reason
+    assert verdict.max_residual == pytest.approx(25.0)
+
+
+def test_gate_rejects_implausible_dynamics_anywhere_in_the_envelope() -> None:
+    t, x, u = flown_data(np.zeros(3))
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    # Half the control effectiveness is a 2x mass: plausible. A tenth is not: the MPC would saturate.
+    for gain, ok in ((-0.5, True), (-0.9, False), (1.0, True), (3.5, False)):
+        mf = linear_residual_model(np.zeros((3, 3)), gain * np.eye(3))
+        verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
+        assert verdict.control_gain[0] == pytest.approx(1.0 + gain, abs=1e-3)
+        assert ("control effectiveness" in verdict.reason) == (not ok), (gain, verdict.reason)
+    # A residual growing with velocity is a phantom instability; drag (negative) is physics.
+    for gain, ok in ((-0.5, True), (2.0, False)):
+        mf = linear_residual_model(gain * np.eye(3), np.zeros((3, 3)))
+        verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
+        assert verdict.velocity_gain == pytest.approx(gain, abs=1e-3)
+        assert ("phantom instability" in verdict.reason) == (not ok), (gain, verdict.reason)
+    # Bounded on the recent data but not at the corners of the input box, where the MPC saturates.
+    mf = linear_residual_model(np.zeros((3, 3)), 0.6 * np.eye(3))
+    verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=3.0))
+    assert np.abs(ResidualQueue.from_model_file(mf).evaluate(x, u)).max() < 3.0
+    assert not verdict.accepted and "exceeds knode.max_residual" in verdict.reason
+
+
+def test_gate_without_held_out_data_rejects() -> None:
+    t, x, u = flown_data(np.zeros(3))
+    empty = gate_pairs(t[:1], x[:1], u[:1], filter_hz=8.0)
+    mf = constant_residual_model([0.0, 0.0, 0.1])
+    verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, empty, x, u, limits())
+    assert not verdict.accepted and verdict.reason == "no held-out data to judge it on"
+
+
+def test_flight_side_imports_no_torch() -> None:
+    code = (
+        "import sys, cfknode.flight.online, cfknode.online_wiring, cfknode.models.trainer_process;"
+        "print('torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"

@@ -1,0 +1,220 @@
+"""The online learner's state machine with a scripted trainer: no process, synthetic ticks, exact outcomes."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from cfknode.config import load_config
+from cfknode.flight.model_slot import ModelSlot
+from cfknode.flight.online import OnlineLearner, TrainerFault
+from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
+from cfknode.models.residual_np import ResidualQueue
+from cfknode.models.trainer_process import TrainOutcome, TrainRequest
+from cfknode.online_wiring import learner_settings
+
+PERIOD = 1.0 / 400.0
+TRUE_R = np.array([0.0, 0.0, -2.0])  # the plant: v' = u + TRUE_R
+
+
+def constant_model(r: np.ndarray, n_networks: int = 1) -> ModelFile:
+    """A queue whose residual is ``r`` (each network outputs r / sum of the queue weights)."""
+    w = np.exp(np.arange(1, n_networks + 1) - n_networks).sum()
+    net = NetworkWeights(((np.zeros((4, 6)), np.zeros(4)), (np.zeros((3, 4)), np.asarray(r) / w)),
+                         Normalisation.identity())
+    return ModelFile((4,), "tanh", 3, (net,) * n_networks)
+
+
+@dataclass(frozen=True)
+class Est:
+    p: np.ndarray
+    v: np.ndarray
+
+
+@dataclass(frozen=True)
+class Tick:
+    t: float
+    est: Est
+    acc: np.ndarray
+    source: str
+    model_version: int
+
+
+class ListLog:
+    def __init__(self) -> None:
+        self.messages: list[tuple[str, float, dict[str, Any]]] = []
+
+    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None:
+        self.messages.append((topic, t, dict(msg)))
+
+    def topic(self, name: str) -> list[dict[str, Any]]:
+        return [m for topic, _, m in self.messages if topic == name]
+
+
+class ScriptedTrainer:
+    """Stands in for ``TrainerClient``: answers each request with ``answer(request)`` once released."""
+
+    def __init__(self, answer) -> None:
+        self.answer = answer
+        self.state = "idle"
+        self.timeout = 10.0
+        self.sent_wall = math.nan
+        self.start_wall = math.nan
+        self.requests: list[TrainRequest] = []
+        self.release = True  # False holds the result back (the trainer is still "training")
+        self.fault: TrainerFault | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self.state == "busy"
+
+    def submit(self, request: TrainRequest) -> None:
+        assert self.state == "idle"
+        self.requests.append(request)
+        self.sent_wall = 0.0
+        self.state = "busy"
+
+    def poll(self, timeout: float = 0.0):
+        if self.state == "busy" and self.fault is not None:
+            self.state, fault, self.fault = "stopped", self.fault, None
+            return fault
+        if self.state == "busy" and self.release:
+            self.state = "idle"
+            return self.answer(self.requests[-1])
+        return None
+
+    def start(self) -> None:
+        self.state, self.start_wall = "idle", 0.0
+
+    def kill(self) -> None:
+        self.fault = TrainerFault("crash", "killed")
+
+
+def outcome_with(model: ModelFile | None, request: TrainRequest) -> TrainOutcome:
+    w = request.window
+    return TrainOutcome(request.round, request.version, w.version, model, w.t0, w.t1, w.t1, len(w.t) - 1, 0.1,
+                        math.nan, math.nan, 2.0, 0.05, 0.05, "" if model is not None else "no usable sample pairs")
+
+
+class Flight:
+    """Synthetic 400 Hz ticks of a vehicle with v' = u + TRUE_R, hovering at 1 m, fed to the learner."""
+
+    def __init__(self, learner: OnlineLearner, slot: ModelSlot) -> None:
+        self.learner, self.slot = learner, slot
+        self.k = 0
+        self.v = np.zeros(3)
+        self.rng = np.random.default_rng(0)
+
+    def run(self, seconds: float, source: str = "mpc") -> None:
+        for _ in range(int(round(seconds / PERIOD))):
+            t = self.k * PERIOD
+            u = np.array([0.3 * math.sin(5 * t), 0.2 * math.cos(4 * t), 2.0 + 0.3 * math.sin(3 * t)])
+            est = Est(np.array([0.0, 0.0, 1.0 if self.k else 0.0]), self.v.copy())
+            self.learner.on_tick(Tick(t, est, u, source, self.slot.version))
+            self.v = self.v + PERIOD * (u + TRUE_R)
+            self.k += 1
+
+
+def make(answer, **online: Any) -> tuple[Flight, OnlineLearner, ScriptedTrainer, ListLog, ModelSlot]:
+    cfg = load_config(overrides={"online.enabled": True, **{f"online.{k}": v for k, v in online.items()}})
+    slot, log, trainer = ModelSlot(None, version=0), ListLog(), ScriptedTrainer(answer)
+    learner = OnlineLearner(replace(learner_settings(cfg, lockstep=False), filter_hz=0.0), slot, trainer, log)
+    return Flight(learner, slot), learner, trainer, log, slot
+
+
+def test_a_good_candidate_is_swapped_in_after_enough_fresh_data() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.run(0.5 + 2 * PERIOD)  # the first tick sets the ground; one window of 0.5 s then closes
+    assert len(trainer.requests) == 1 and trainer.requests[0].base is None and trainer.requests[0].version == 1
+    assert slot.version == 0  # the result is in, but the gate waits for gate_min_pairs fresh samples
+    flight.run(0.2)
+    assert slot.version == 1 and isinstance(slot.model, ResidualQueue)
+    swap = log.topic("/model")[-1]
+    assert swap["event"] == "swap" and swap["queue"] == [1] and swap["val_error"] < swap["val_error_current"]
+    # The next request builds on the flying model, with the next version number.
+    flight.run(0.6)
+    assert trainer.requests[1].base is not None and trainer.requests[1].version == 2
+    assert trainer.requests[1].window.version == 1 and trainer.requests[1].window.t0 > learner.swaps[0].t
+
+
+def test_no_backlog_while_the_trainer_is_busy() -> None:
+    flight, learner, trainer, _, _ = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    trainer.release = False
+    flight.run(2.1)  # four windows close while the first round is still out
+    assert len(trainer.requests) == 1
+    assert learner.stats.windows_superseded == 2  # windows 2 and 3 were replaced by the newest, 4
+    trainer.release = True
+    flight.run(0.2)
+    # The finished round was swapped in; the waiting window was flown under the old model: dropped.
+    assert learner.stats.accepted == 1 and learner.stats.windows_stale == 1
+
+
+def test_a_worse_candidate_is_rejected_and_learning_goes_on() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(-TRUE_R), req))
+    flight.run(1.2)
+    assert slot.version == 0 and learner.stats.rejected >= 1
+    assert "not better on held-out data" in log.topic("/model")[0]["reason"]
+    assert len(trainer.requests) == 2 and trainer.requests[1].base is None  # still on the nominal model
+
+
+def test_a_failed_round_is_logged_and_skipped() -> None:
+    flight, learner, _, log, slot = make(lambda req: outcome_with(None, req))
+    flight.run(0.8)
+    assert slot.version == 0 and learner.stats.rounds_failed == 1
+    assert log.topic("/training")[0]["ok"] is False
+    assert log.topic("/model")[0]["reason"].startswith("training failed")
+
+
+def test_fallbacks_right_after_a_swap_roll_back_and_stale_results_are_refused() -> None:
+    answers: list[Any] = []
+    flight, learner, trainer, log, slot = make(lambda req: answers.pop(0)(req), gate=False)
+    answers.append(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.run(0.5 + 5 * PERIOD)
+    # Gate off: the window closes at tick 201, its result arrives at 202, folding it is the slice
+    # after that, and the tick after that flies it.
+    assert slot.version == 1
+    flight.run(2 * PERIOD, source="fallback")  # the solver failed twice right after the swap
+    assert slot.version == 0 and learner.stats.rollbacks == 1
+    assert log.topic("/model")[-1]["event"] == "rollback" and log.topic("/model")[-1]["queue"] == []
+    # A round that was trained on the rolled-back model is refused when it comes in.
+    answers.append(lambda req: replace(outcome_with(constant_model(TRUE_R), req), base_version=1))
+    flight.run(0.8)
+    assert learner.rounds[-1].outcome == "reject" and learner.rounds[-1].reason.startswith("stale")
+
+
+def test_a_crash_restarts_the_trainer_and_the_window_waits() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req), max_restarts=1)
+    trainer.fault = TrainerFault("crash", "trainer process exited (code 70)")
+    flight.run(0.6)
+    assert learner.stats.crashes == 1 and learner.stats.restarts == 1 and not learner.failed
+    assert [m["event"] for m in log.topic("/model")] == ["crash", "restart"]
+    flight.run(0.7)
+    assert slot.version == 2  # round 1 was lost; round 2 (version 2) flew
+    trainer.fault = TrainerFault("hang", "no result within online.trainer_timeout = 10 s; killed")
+    flight.run(0.6)
+    assert learner.failed and learner.stats.hangs == 1  # restarts exhausted: learning stops, flying goes on
+    assert slot.version == 2 and log.topic("/events")[-1]["level"] == "error"
+
+
+def test_a_starting_model_is_the_first_base() -> None:
+    cfg = load_config(overrides={"online.enabled": True})
+    start = constant_model(0.5 * TRUE_R, n_networks=2)
+    slot, trainer = ModelSlot(ResidualQueue.from_model_file(start), version=1), ScriptedTrainer(
+        lambda req: outcome_with(constant_model(TRUE_R, n_networks=3), req))
+    log = ListLog()
+    learner = OnlineLearner(replace(learner_settings(cfg, lockstep=False), filter_hz=0.0), slot, trainer, log, start)
+    Flight(learner, slot).run(0.75)
+    assert trainer.requests[0].base is start and trainer.requests[0].version == 2
+    assert slot.version == 2 and log.topic("/model")[-1]["queue"] == [1, 1, 2]
+
+
+def test_collection_starts_at_start_time() -> None:
+    flight, learner, trainer, _, _ = make(lambda req: outcome_with(constant_model(TRUE_R), req), start_time=1.0)
+    flight.run(1.4)
+    assert learner.recorder.windows == 0 and not trainer.requests
+    flight.run(0.2)
+    assert learner.windows[0][1] == pytest.approx(1.0)

@@ -1,0 +1,151 @@
+"""The online trainer (the paper's Algorithm 2): one round in-process, and the real spawned process with faults."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cfknode.config import FaultInjection, load_config
+from cfknode.flight.online import TrainerClient, TrainerFault
+from cfknode.models.knode import KnodeQueue, to_torch_queue
+from cfknode.models.modelfile import Normalisation
+from cfknode.models.residual_np import ResidualQueue
+from cfknode.models.trainer_process import (
+    CRASH_EXIT_CODE,
+    TrainerReady,
+    TrainOutcome,
+    TrainRequest,
+    Window,
+    _train_round,
+    renormalise,
+)
+from cfknode.online_wiring import trainer_settings
+
+RATE = 400.0
+
+
+def window(residual: np.ndarray, index: int = 1, t0: float = 2.0, n: int = 201, version: int = 0, seed: int = 0) -> Window:
+    """A 400 Hz window of v' = u + residual (noise-free velocities, a wandering command)."""
+    t = t0 + np.arange(n) / RATE
+    u = np.stack([0.8 * np.sin(4 * t), 0.6 * np.cos(3 * t), 0.5 * np.sin(6 * t + seed)], axis=1)
+    v = np.zeros((n, 3))
+    for i in range(n - 1):
+        v[i + 1] = v[i] + (u[i] + residual) / RATE
+    p = np.cumsum(v, axis=0) / RATE
+    return Window(index, t, np.concatenate((p, v), axis=1), u, version)
+
+
+@pytest.fixture(scope="module")
+def settings():
+    cfg = load_config(overrides={"online.enabled": True})
+    return trainer_settings(cfg)
+
+
+def test_renormalise_keeps_the_function() -> None:
+    torch.manual_seed(0)
+    queue = KnodeQueue((16, 16), "tanh", 3, Normalisation(np.zeros(6), np.ones(6), np.full(3, 0.5)))
+    net = queue.push()
+    with torch.no_grad():
+        for layer in net.layers:
+            layer.weight.normal_(0.0, 0.5)
+            layer.bias.normal_(0.0, 0.1)
+    z = torch.randn(50, 6, dtype=torch.float64)
+    before = net(z).detach().clone()
+    renormalise(net, Normalisation(np.array([0.1, -0.2, 0.0, 1.0, 0.0, -4.9]), np.array([0.3, 0.4, 0.25, 1.5, 0.7, 2.0]),
+                                   np.array([2.0, 3.0, 9.0])))
+    torch.testing.assert_close(net(z), before, rtol=1e-12, atol=1e-12)
+    assert float(net.output_scale[2]) == 9.0
+
+
+def test_a_round_learns_the_residual_and_reports_its_metadata(settings) -> None:
+    r = np.array([0.0, 0.0, 4.9])  # half the mass: the commanded acceleration falls 4.9 m/s^2 short... upwards
+    w = window(r, version=0)
+    out = _train_round(TrainRequest(1, 1, w, (), None, 0.0), settings)
+    assert out.error == "" and out.model is not None
+    assert (out.round, out.version, out.base_version) == (1, 1, 0)
+    assert (out.window_t0, out.window_t1) == (w.t0, w.t1) and out.train_t1 == pytest.approx(w.t1)
+    assert out.pairs == 200 and out.wall_s > 0 and out.cpu_s > 0 and math.isfinite(out.loss)
+    assert len(out.model.networks) == 1 and out.model.extra["version"] == 1
+    learned = ResidualQueue.from_model_file(out.model).evaluate(w.x, w.u)
+    assert np.abs(learned.mean(axis=0) - r).max() < 0.2 * 4.9  # 30 Adam steps from a zero output: most of it
+
+    # Round 2, warm start on round 1's queue: the new network starts as the old function and improves on it.
+    w2 = window(r, index=2, t0=2.6, version=1, seed=1)
+    out2 = _train_round(TrainRequest(2, 2, w2, (), out.model, 0.0), settings)
+    assert out2.base_version == 1 and len(out2.model.networks) == 2
+    learned2 = ResidualQueue.from_model_file(out2.model).evaluate(w2.x, w2.u)
+    assert np.abs(learned2.mean(axis=0) - r).max() < np.abs(learned.mean(axis=0) - r).max()
+    # The frozen network is unchanged in the new queue.
+    old = to_torch_queue(out.model).networks[0].layers[-1].weight.detach().numpy()
+    np.testing.assert_array_equal(out2.model.networks[0].layers[-1][0], old)
+
+
+def test_a_round_with_a_held_out_tail_and_a_replayed_window(settings) -> None:
+    r = np.array([1.0, 0.0, 0.0])
+    older, newest = window(r, index=1), window(r, index=2, t0=2.6, seed=2)
+    out = _train_round(TrainRequest(3, 3, newest, (older,), None, 0.2), settings)
+    assert out.error == ""
+    assert out.pairs == 200 + 160  # the whole older window, 80 % of the newest
+    assert newest.t0 < out.train_t1 < newest.t1 - 0.09
+    assert math.isfinite(out.val_rmse_model) and out.val_rmse_model < out.val_rmse_nominal
+
+
+def test_a_round_that_cannot_train_reports_an_error(settings) -> None:
+    w = window(np.zeros(3), n=1)
+    out = _train_round(TrainRequest(4, 4, w, (), None, 0.0), settings)
+    assert out.model is None and "no usable sample pairs" in out.error
+
+
+def test_the_spawned_trainer_trains_and_survives_a_crash(settings) -> None:
+    client = TrainerClient(dataclasses.replace(settings, inject=FaultInjection(crash_at_round=2, hang_at_round=0,
+                                                                               nan_at_round=3)), timeout=30.0)
+    client.start()
+    try:
+        assert client.wait_ready(120.0) and client.state == "idle"
+        r = np.array([0.0, 0.0, -2.0])
+        client.submit(TrainRequest(1, 7, window(r), (), None, 0.0))
+        assert client.busy
+        out = _wait(client)
+        assert isinstance(out, TrainOutcome) and out.version == 7 and out.model is not None
+        assert client.state == "idle"
+
+        client.submit(TrainRequest(2, 8, window(r, index=2), (), out.model, 0.0))  # injected crash
+        fault = _wait(client)
+        assert isinstance(fault, TrainerFault) and fault.kind == "crash"
+        assert f"code {CRASH_EXIT_CODE}" in fault.reason and client.state == "stopped"
+
+        client.start()  # the learner's restart
+        assert client.wait_ready(120.0)
+        client.submit(TrainRequest(3, 9, window(r, index=3), (), out.model, 0.0))  # injected NaN
+        nan_out = _wait(client)
+        assert isinstance(nan_out, TrainOutcome) and nan_out.model is not None
+        assert not np.all(np.isfinite(nan_out.model.networks[-1].layers[-1][0]))
+        assert client.starts == 2
+    finally:
+        client.close()
+    assert client.state == "stopped"
+
+
+def test_a_hung_trainer_is_reported_after_the_timeout(settings) -> None:
+    client = TrainerClient(dataclasses.replace(settings, inject=FaultInjection(0, 1, 0)), timeout=1.0)
+    client.start()
+    try:
+        assert client.wait_ready(120.0)
+        client.submit(TrainRequest(1, 1, window(np.zeros(3)), (), None, 0.0))
+        fault = _wait(client)
+        assert isinstance(fault, TrainerFault) and fault.kind == "hang"
+        assert client.state == "stopped"
+    finally:
+        client.close()
+
+
+def _wait(client: TrainerClient) -> TrainOutcome | TrainerFault | TrainerReady | None:
+    for _ in range(1000):
+        event = client.poll(0.5)
+        if event is not None:
+            return event
+    return None
