@@ -42,6 +42,7 @@ class FlightResult:
     summary: FlightSummary
     record: FlightRecord
     outcome: Outcome  # how the flight ended; ``outcome.message`` is the line the user sees
+    learner: Any = None  # the online learner (flight.online.OnlineLearner) when online learning ran
 
 
 def build_controller(cfg: Config) -> TranslationalMpc | None:
@@ -118,13 +119,17 @@ def run_flight(
         except HARDWARE_ERRORS as exc:
             raise MissionError(str(exc)) from exc
         session = _cf_session(cfg, dashboard)
+    from cfknode.online_wiring import online_model_slot, start_trainer
+
     model = build_model_slot(flight_cfg)
     loaded_model = model is not None
+    model = online_model_slot(flight_cfg, model)  # online learning swaps into an empty (nominal) slot
     if model is None and cfg.faults.nan_model_at >= 0:
         model = ModelSlot(None)  # nominal until the injected model is swapped in
     mpc = build_controller(flight_cfg)  # built (and compiled) before the clock starts
-    with session as sess:
-        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard)
+    # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
+    with start_trainer(flight_cfg) as trainer, session as sess:
+        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer)
 
 
 def _fly_session(
@@ -136,7 +141,10 @@ def _fly_session(
     observers: Sequence[TickObserver],
     on_supervisor: Callable[[Supervisor], None] | None,
     dashboard: Any,
+    trainer: Any,
 ) -> FlightResult:
+    from cfknode.online_wiring import online_session
+
     cfg = sess.config
     trajectory = make_trajectory(cfg.trajectory, sess.start_position)
     status = _dashboard_status(cfg) if dashboard is not None else None
@@ -152,57 +160,70 @@ def _fly_session(
             deadlines_apply=not sess.clock.lockstep,
             inputs=SupervisorInputs(battery_voltage=sess.battery_voltage, link_status=sess.link_status),
         )
-        parts = FlightParts(
-            clock=sess.clock,
-            mocap=sess.mocap,
-            estimator=VelocityEstimator(cfg.estimator),
-            trajectory=trajectory,
-            mpc=sess.wrap_controller(mpc),
-            supervisor=supervisor,
-            log=log,
-            vehicle=cfg.vehicle,
-            controller=cfg.controller,
-            truth=sess.truth,
-            model=model,
-            observers=[*observers, *([status] if status is not None else []), *sess.fault_observers(model)],
-            estop=EstopMailbox(mailbox_dir(cfg.safety.estop_dir), cfg.hardware.robot),
-        )
-        if on_supervisor is not None:
-            on_supervisor(supervisor)
-        flight = fly(parts)
-        if status is not None:
-            flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
-        record = asyncio.run(flight)
-        sess.radio.shutdown()
-        outcome = supervisor.outcome()
-        summary = compute_summary(
-            t=record.t,
-            p=record.p,
-            p_ref=record.p_ref,
-            compute_s=record.compute_s,
-            solve_s=record.solve_s,
-            missed=record.missed,
-            window=trajectory.pattern_window,
-            wall_time=record.wall_time,
-            log_path=str(flight_log.path),
-            extra={
-                "outcome": outcome.message,
-                "safety_state": outcome.state.value,
-                "safety_cause": outcome.cause,
-                "fallback_ticks": record.fallbacks,
-                "fallback_reasons": dict(record.fallback_reasons),
-                "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
-                "controller": "knode-mpc" if loaded_model else cfg.controller.kind,
-                "model": cfg.controller.model or None,
-                "solver": cfg.controller.solver if mpc is not None else "none",
-                "backend": cfg.backend,
-                "lockstep": bool(sess.clock.lockstep),
-                "mocap_dropouts": sess.mocap.stats().dropouts,
-                **sess.after_handback(),
-            },
-        )
-        log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
-    return FlightResult(summary=summary, record=record, outcome=outcome)
+        with online_session(cfg, model, log, sess.clock, trainer) as online:
+            parts = FlightParts(
+                clock=sess.clock,
+                mocap=sess.mocap,
+                estimator=VelocityEstimator(cfg.estimator),
+                trajectory=trajectory,
+                mpc=sess.wrap_controller(mpc),
+                supervisor=supervisor,
+                log=log,
+                vehicle=cfg.vehicle,
+                controller=cfg.controller,
+                truth=sess.truth,
+                model=model,
+                observers=[
+                    *observers,
+                    *([online] if online is not None else []),
+                    *([status] if status is not None else []),
+                    *sess.fault_observers(model),
+                ],
+                estop=EstopMailbox(mailbox_dir(cfg.safety.estop_dir), cfg.hardware.robot),
+            )
+            if on_supervisor is not None:
+                on_supervisor(supervisor)
+            flight = fly(parts)
+            if status is not None:
+                flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
+            record = asyncio.run(flight)
+            sess.radio.shutdown()
+            outcome = supervisor.outcome()
+            summary = compute_summary(
+                t=record.t,
+                p=record.p,
+                p_ref=record.p_ref,
+                compute_s=record.compute_s,
+                solve_s=record.solve_s,
+                missed=record.missed,
+                window=trajectory.pattern_window,
+                wall_time=record.wall_time,
+                log_path=str(flight_log.path),
+                extra={
+                    "outcome": outcome.message,
+                    "safety_state": outcome.state.value,
+                    "safety_cause": outcome.cause,
+                    "fallback_ticks": record.fallbacks,
+                    "fallback_reasons": dict(record.fallback_reasons),
+                    "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
+                    "controller": _controller_label(cfg, loaded_model, online is not None),
+                    "model": cfg.controller.model or None,
+                    "solver": cfg.controller.solver if mpc is not None else "none",
+                    "backend": cfg.backend,
+                    "lockstep": bool(sess.clock.lockstep),
+                    "mocap_dropouts": sess.mocap.stats().dropouts,
+                    **(online.summary_fields() if online is not None else {}),
+                    **sess.after_handback(),
+                },
+            )
+            log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
+    return FlightResult(summary=summary, record=record, outcome=outcome, learner=online)
+
+
+def _controller_label(cfg: Config, loaded_model: bool, online: bool) -> str:
+    if online:
+        return "knode-mpc-online (paper lockstep)" if cfg.online.paper_lockstep else "knode-mpc-online"
+    return "knode-mpc" if loaded_model else cfg.controller.kind
 
 
 def _dashboard_status(cfg: Config) -> Any:

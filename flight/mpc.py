@@ -24,8 +24,10 @@ Input bounds (a box on u, from the vehicle):
 - a_z <= 0.9 T_max / m - g: at most 90 % of the thrust at the RPYT clamp for vertical
   acceleration; the rest is headroom the attitude loop needs to tilt and for the mixer's
   excess capping (thrust/weight is only ~1.5 at the 60000 clamp).
-- a_z >= -g / 2: never command (near) free fall; the motors would idle and the
-  attitude loop would lose authority.
+- a_z >= -(1 - min_thrust_fraction) g: never command (near) free fall; the motors would
+  idle and the attitude loop would lose authority. The default keeps 20 % of hover thrust:
+  a lighter vehicle than the model's (mass 0.5x, the paper's scenario) hovers only at a
+  command of -g/2, so the bound must leave room below that to descend.
 - |a_x|, |a_y| <= g tan(max_tilt): the horizontal acceleration a level-ish hover thrust
   can produce at the tilt limit.  Per axis, so the joint tilt may exceed it at a
   corner; the Mellinger layer, which owns the attitude, clamps the final tilt.
@@ -120,7 +122,8 @@ def acceleration_bounds(ctrl: ControllerConfig, vehicle: VehicleConfig) -> Accel
     if az_max <= 0.0:
         raise ValueError(f"vehicle cannot hover with a 10% margin: 0.9 T_max/m - g = {az_max:.3f} m/s^2")
     axy = g * math.tan(math.radians(ctrl.max_tilt_deg))
-    return AccelerationBounds(np.array([-axy, -axy, -0.5 * g]), np.array([axy, axy, az_max]))
+    az_min = -(1.0 - ctrl.min_thrust_fraction) * g
+    return AccelerationBounds(np.array([-axy, -axy, az_min]), np.array([axy, axy, az_max]))
 
 
 @dataclass(frozen=True)

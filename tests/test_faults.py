@@ -57,7 +57,7 @@ SCENARIOS: dict[str, Expect] = {
     "low_battery_idle": Expect("IDLE", "battery_low", r"take-off refused: battery 3\.5\d V is below 3\.7 V",
                                firmware="idle"),
     "geofence_wind": Expect("LANDED", "fence", rf"landed: crossed the geofence on x at {T}", crosses_fence=True),
-    "heavy_payload": Expect("LANDED", "tracking", rf"landed: tracking error 0\.\d\d m above 0\.3 m at {T}"),
+    "heavy_payload": Expect("LANDED", "tracking", rf"landed: tracking error 0\.\d\d m above 0\.5 m at {T}"),
     "sigint": Expect("LANDED", "sigint", rf"landed: Ctrl-C \(SIGINT\) at {T}"),
     "sigint_twice": Expect("EMERGENCY", "sigint_stop", rf"motors stopped: second Ctrl-C \(SIGINT\) at {T}"),
 }
@@ -172,13 +172,16 @@ def test_radio_loss_leaves_the_firmware_to_its_watchdog(flights):
     assert flights["radio_loss"].summary.extra["firmware_after_shutdown"] == "landed"
 
 
-@pytest.mark.skip(reason="online learning (cfknode/online_wiring.py) is not wired into run_flight yet, "
-                         "so no trainer process runs in a flight and none can crash")
 def test_trainer_crash(tmp_path):
+    """The trainer dies in its third round: the flight goes on with the last good model and completes."""
     res = run_flight(_cfg(tmp_path, scenario_path("trainer_crash")))
     assert res.outcome.state.value == "LANDED" and res.outcome.message == "flight complete: landed"
-    events = [m["text"] for m in read_log(res.summary.log_path).topic("/events")]
-    assert any("trainer" in text for text in events)
+    extra = res.summary.extra
+    assert extra["trainer_crashes"] == 1 and extra["trainer_restarts"] >= 1 and not extra["trainer_failed"]
+    assert extra["models_accepted"] >= 1  # learning went on before (and around) the crash
+    log = read_log(res.summary.log_path)
+    assert not log.truncated
+    assert "crash" in {m["event"] for m in log.topic("/model")}
 
 
 def test_sigint_in_a_real_process(tmp_path):
@@ -186,7 +189,9 @@ def test_sigint_in_a_real_process(tmp_path):
     cmd = [sys.executable, "-m", "cfknode", "fly", "--config", str(scenario_path("sigint")), "--json",
            "--log-dir", str(tmp_path), "--set", f"safety.estop_dir={tmp_path}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
+    # Landed safely, but the mission was cut short: exit status 1, and the outcome line on stderr.
+    assert proc.returncode == 1, proc.stderr
+    assert re.fullmatch("cfknode: " + SCENARIOS["sigint"].message, proc.stderr.strip().splitlines()[-1])
     summary = json.loads(proc.stdout)
     assert re.fullmatch(SCENARIOS["sigint"].message, summary["extra"]["outcome"])
     assert summary["extra"]["vehicle_after_shutdown"]["motors"] == [0, 0, 0, 0]

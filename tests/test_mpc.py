@@ -121,7 +121,7 @@ def test_position_offset_accelerates_toward_reference(rti):
 def test_bounds_respected_under_large_error(rti, cfg):
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     g = cfg.vehicle.gravity
-    assert bounds.lower[2] == pytest.approx(-0.5 * g)
+    assert bounds.lower[2] == pytest.approx(-(1 - cfg.controller.min_thrust_fraction) * g)
     assert bounds.upper[2] == pytest.approx(0.9 * cfg.vehicle.max_thrust / cfg.vehicle.mass - g)
     assert bounds.upper[0] == pytest.approx(g * np.tan(np.radians(cfg.controller.max_tilt_deg)))
     ref = _hover_ref(rti.horizon)

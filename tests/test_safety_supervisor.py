@@ -217,7 +217,7 @@ def test_tumble_stops_but_one_bad_frame_does_not():
 def test_tracking_error_lands_after_it_persists():
     rig = Rig()
     rig.to_track()
-    off = rig.traj.sample(np.array([rig.now])).p[0] + [0.0, 0.0, -0.35]
+    off = rig.traj.sample(np.array([rig.now])).p[0] + [0.0, 0.0, -(rig.cfg.safety.max_tracking_error + 0.05)]
     for _ in range(int(0.1 * RATE)):
         rig.tick(p=off)
     assert rig.sup.state is State.TRACK

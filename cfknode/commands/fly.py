@@ -63,6 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true", help="simulate against the wall clock instead of lockstep")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--headless", action="store_true", help="fly without the live dashboard")
+    p.add_argument("--online", action="store_true", help="learn the KNODE model in flight (config section online)")
+    p.add_argument("--paper-lockstep", dest="paper_lockstep", action="store_true",
+                   help="online learning as the paper's code does it: the simulation waits for every model "
+                        "(for reproduction only)")
     p.add_argument("--name", default=None, help="name hint for the log file")
 
 
@@ -76,6 +80,10 @@ def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) ->
         overrides["sim.realtime"] = True
     if getattr(args, "force", False):
         overrides["hardware.force"] = True
+    if getattr(args, "online", False) or getattr(args, "paper_lockstep", False):
+        overrides["online.enabled"] = True
+    if getattr(args, "paper_lockstep", False):
+        overrides["online.paper_lockstep"] = True
     for item in args.set:
         key, value = parse_override(item)
         overrides[key] = value
