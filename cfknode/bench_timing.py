@@ -228,3 +228,23 @@ def render_timing(result: dict[str, Any], console: Any) -> None:
     console.print(flights)
     for name, value in result["ratios"].items():
         console.print(f"ratio {name}: {value:.1f}x")
+
+
+def add_timing_arguments(p: Any) -> None:
+    p.add_argument("--quick", action="store_true", help="shorter runs (a smoke test, about 15 s)")
+    p.add_argument("--json", dest="json_out", metavar="FILE", help="also write the results as JSON")
+
+
+def run_timing(args: Any) -> int:
+    """``cfknode bench timing``: print the table (and optionally write JSON)."""
+    import json
+
+    from rich.console import Console
+
+    console = Console()
+    result = run_timing_bench(quick=args.quick, progress=lambda what: console.print(f"[dim]timing {what}...[/]"))
+    render_timing(result, console)
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(result, f, indent=1)
+    return 0

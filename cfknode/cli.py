@@ -21,7 +21,7 @@ from typing import Sequence  # noqa: E402
 from cfknode import __version__  # noqa: E402
 from cfknode.config import ConfigError  # noqa: E402
 
-COMMANDS: tuple[str, ...] = ("fly", "train", "plot", "replay", "calibrate", "estop")
+COMMANDS: tuple[str, ...] = ("fly", "train", "plot", "replay", "calibrate", "estop", "bench")
 
 
 class UsageError(ValueError):
