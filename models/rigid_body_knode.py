@@ -162,10 +162,14 @@ class RigidBodyNet(nn.Module):
         self.register_buffer("mean", torch.as_tensor(layout.mean, dtype=dtype))
         self.register_buffer("scale", torch.as_tensor(layout.scale, dtype=dtype))
         self.register_buffer("out_scale", torch.as_tensor(layout.out_scale, dtype=dtype))
+        # The paper's raw 17 -> 13 network needs no gather and no scaling: skip those ops (hot loop).
+        self.raw_inputs = layout.inputs == tuple(range(NZ)) and not layout.input_mean and not layout.input_scale
+        self.raw_outputs = not layout.output_scale
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h = torch.tanh(self.l1((z[..., self.inputs] - self.mean) / self.scale))
-        return self.l2(h) * self.out_scale
+        zin = z if self.raw_inputs else (z[..., self.inputs] - self.mean) / self.scale
+        out = self.l2(torch.tanh(self.l1(zin)))
+        return out if self.raw_outputs else out * self.out_scale
 
 
 class RigidBodyQueue(nn.Module):
@@ -177,6 +181,8 @@ class RigidBodyQueue(nn.Module):
         self.dtype = dtype
         self.networks = nn.ModuleList()
         self._rows = list(layout.rows)
+        self._all_rows = layout.rows == tuple(range(NX))
+        self._row_index = torch.as_tensor(layout.rows, dtype=torch.long)
         # A private generator: reproducible initialisation without touching torch's global RNG.
         self._generator = torch.Generator().manual_seed(seed)
 
@@ -208,7 +214,9 @@ class RigidBodyQueue(nn.Module):
         if not self.networks:
             return f
         r = self.residual(torch.cat((x, u), dim=-1))
-        return f.index_add(-1, torch.as_tensor(self._rows), r)
+        if self._all_rows:
+            return f + r
+        return f.index_add(-1, self._row_index, r)
 
     def to_weights(self) -> QueueWeights:
         nets = tuple(
@@ -397,7 +405,8 @@ def fit_output_layer(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys:
     with torch.no_grad():
         z = torch.as_tensor(pairs.z0, dtype=queue.dtype)
         frozen = (queue.residual(z) - newest(z)).to(torch.float64).numpy()  # weight of the newest is 1
-        feats = torch.tanh(newest.l1((z[:, newest.inputs] - newest.mean) / newest.scale)).to(torch.float64).numpy()
+        zin = z if newest.raw_inputs else (z[:, newest.inputs] - newest.mean) / newest.scale
+        feats = torch.tanh(newest.l1(zin)).to(torch.float64).numpy()
         w2 = newest.l2.weight.detach().to(torch.float64).numpy()
         b2 = newest.l2.bias.detach().to(torch.float64).numpy()
     y = (apparent_residual(pairs, queue.layout.rows, h, phys) - frozen) / queue.layout.out_scale[None, :]

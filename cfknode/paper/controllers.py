@@ -72,6 +72,9 @@ class Formulation:
     nominal_on_failure: bool = False  # a failed solve with a model is re-solved without it (else: hold u)
     output_ridge: float = 0.0  # > 0: after the Adam steps, solve the output layer in closed form (ridge)
     monitor: bool = False  # drop a model that predicts the last tick's samples worse than nominal
+    # ... by this factor: a partly learned model can lose to nominal on one tick's samples by
+    # chance (seen: 1.2-2x); a model the world has moved away from loses by 20x and more.
+    monitor_margin: float = 3.0
 
     @property
     def dtype(self) -> torch.dtype:
@@ -352,7 +355,7 @@ class LatencyLearner:
 
     With ``monitor``, every tick also checks the model in use on the samples flown since the
     previous tick: when it predicts them worse than the nominal model (the world changed
-    under it, e.g. a second mass change), the MPC drops to the nominal model until the next
+    under it, e.g. a second mass change) by ``monitor_margin``, the MPC drops to the nominal model until the next
     accepted candidate; that is a controller change too, so the window restarts.
     """
 
@@ -401,7 +404,8 @@ class LatencyLearner:
                 np.array([np.concatenate((x, u)) for x, u, _ in recent]), np.array([x1 for _, _, x1 in recent])
             )
             h = self.form.online.h
-            if residual_error(self.queue, pairs, h, self.phys) > residual_error(self._nominal, pairs, h, self.phys):
+            err_model = residual_error(self.queue, pairs, h, self.phys)
+            if err_model > self.form.monitor_margin * residual_error(self._nominal, pairs, h, self.phys):
                 self.residual = None
                 self.drops.append(t)
                 self._restart_window()
