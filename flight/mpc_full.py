@@ -18,7 +18,7 @@ RK4 of the true hybrid model for all N intervals at once, with forward-mode sens
 constraint values and Jacobian at every iterate.  Its Hessian is a limited-memory
 (L-BFGS) approximation by default.  The Hessian only steers the steps; IPOPT's
 convergence test uses the exact gradients, so a converged answer is the answer of the
-problem with the network inside the graph (checked in the tests to 1e-9).
+problem with the network inside the graph (the tests compare the two plans).
 
 Decision vector: w = [u_0, x_1, u_1, x_2, ..., u_{N-1}, x_N]; x_0 is the parameter x0.
 Cost: sum_k (x_{k+1} - xr_k)' Q (x_{k+1} - xr_k) + (u_k - ur_k)' R (u_k - ur_k), with P in

@@ -18,15 +18,15 @@ HELP = "benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures th
 
 
 def _version() -> str:
+    """cfknode's version, with the git commit and "+dirty" when the checkout has changes (read-only git)."""
     from cfknode import __version__
 
+    here = Path(__file__).resolve().parent
     try:
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
-            cwd=Path(__file__).resolve().parent,
-        )
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5, cwd=here)
         if rev.returncode == 0 and rev.stdout.strip():
-            return f"{__version__} (git {rev.stdout.strip()})"
+            dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], capture_output=True, timeout=5, cwd=here).returncode
+            return f"{__version__} (git {rev.stdout.strip()}{'+dirty' if dirty else ''})"
     except (OSError, subprocess.SubprocessError):
         pass
     return __version__

@@ -140,6 +140,9 @@ def _timing_lines(results: BenchResults, formulation: str) -> list[str]:
             if swapped:
                 lat = np.median([x.swap - x.window_end for x in swapped])
                 text += f", window end to first use {lat * 1e3:.0f} ms median (sim time)"
+            drops = sum(len(r.model_drops) for r in rs)
+            if drops:
+                text += f"; the monitor dropped a model {drops} times"
         lines.append(text)
     return [f"Timings ({formulation}):", *lines, ""] if lines else []
 
@@ -166,6 +169,7 @@ def to_json(results: BenchResults, version: str, command: str) -> dict[str, Any]
                 "failed_solves": r.failures,
                 "nominal_fallbacks": r.fallbacks,
                 "training_wall_s": r.training_wall,
+                "model_drops": list(r.model_drops),
                 "rounds": [
                     {
                         "window_end": x.window_end,
@@ -228,13 +232,14 @@ def plot_fig2(results: BenchResults, formulation: str, cell: Cell, path: Path) -
     t = np.linspace(0.0, protocol.duration, 801)
     ref = circle.sample(t)[0]
     fig, (top, alt) = plt.subplots(1, 2, figsize=(11, 4.6))
-    top.plot(ref[:, 0], ref[:, 1], color="red", lw=2.0, label="reference")
-    alt.plot(t, ref[:, 2], color="red", lw=2.0, label="reference")
+    # The reference is drawn last and dashed: with preview the runs lie on it and would hide it.
+    top.plot(ref[:, 0], ref[:, 1], color="red", lw=1.2, ls="--", label="reference", zorder=5)
+    alt.plot(t, ref[:, 2], color="red", lw=1.2, ls="--", label="reference", zorder=5)
     for kind in kinds:
         run = results.get(formulation, cell, kind)
         assert run is not None
         tr = run.trajectory
-        label = f"{LABELS[kind]} (MSE {run.mse:.4f})"
+        label = f"{LABELS[kind]} (MSE {run.mse:.4g})"
         top.plot(tr[:, 1], tr[:, 2], lw=1.2, label=label)
         alt.plot(tr[:, 0], tr[:, 3], lw=1.2, label=label)
     for ev in protocol.events:

@@ -52,6 +52,7 @@ class RunResult:
     failures: int  # ticks whose solve failed (the previous input was held)
     fallbacks: int  # ticks whose solve with the model failed and were re-solved without it
     rounds: tuple[RoundRecord, ...] = ()
+    model_drops: tuple[float, ...] = ()  # sim times the default's monitor dropped a model for nominal
     training_wall: float = 0.0  # s of wall time spent training inside this run
     offline_train_wall: float = math.nan  # s, the offline model's training (knode_offline)
     trajectory: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)), repr=False)  # (t, x, y, z)
@@ -163,6 +164,7 @@ def simulate(
         failures=failures,
         fallbacks=fallbacks,
         rounds=tuple(learner.rounds),
+        model_drops=tuple(getattr(learner, "drops", ())),
         training_wall=float(sum(r.wall_time for r in learner.rounds)),
         trajectory=traj,
     )
