@@ -155,11 +155,17 @@ class OnlineConfig:
     gate_min_pairs: int
     gate_control_gain: tuple[float, float]
     gate_max_velocity_gain: float
+    gate_max_cross_gain: float
     trainer_timeout: float
     max_restarts: int
     start_time: float
     rollback_ticks: int
     rollback_fallbacks: int
+    monitor: bool
+    monitor_window_s: float
+    monitor_every_ticks: int
+    monitor_margin: float
+    monitor_floor: float
     inject: FaultInjection
 
 
@@ -309,10 +315,15 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.replay_windows", lambda v: 0 <= v <= 20, "in 0..20"),
     ("online.gate_min_pairs", lambda v: v >= 2, ">= 2"),
     ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
+    ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
     ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
     ("online.max_restarts", lambda v: v >= 0, ">= 0"),
     ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),
     ("online.rollback_fallbacks", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
+    ("online.monitor_every_ticks", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_margin", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_floor", lambda v: v >= 0, ">= 0 m/s^2"),
     ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
     ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
     ("safety.fence_margin", lambda v: v >= 0, ">= 0"),

@@ -22,6 +22,7 @@ import dataclasses
 from typing import Any, Iterator
 
 from cfknode.config import Config, ConfigError
+from cfknode.flight.model_monitor import MonitorSettings
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.online import GateLimits, LearnerSettings, OnlineLearner, TrainerClient, operating_envelope
 from cfknode.models.trainer_process import TrainerSettings
@@ -74,6 +75,8 @@ def learner_settings(cfg: Config, lockstep: bool) -> LearnerSettings:
         filter_hz=cfg.training.velocity_filter_hz,
         holdout_fraction=cfg.training.validation_fraction,
         queue_size=cfg.knode.queue_size,
+        monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
+        if o.monitor else None,
     )
 
 
@@ -83,7 +86,8 @@ def gate_limits(cfg: Config) -> GateLimits:
 
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     x, u = operating_envelope(2.0 * cfg.trajectory.speed + 0.5, bounds.lower, bounds.upper)
-    return GateLimits(cfg.knode.max_residual, cfg.online.gate_control_gain, cfg.online.gate_max_velocity_gain, x, u)
+    o = cfg.online
+    return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain)
 
 
 @contextlib.contextmanager

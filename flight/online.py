@@ -38,6 +38,7 @@ from typing import Any, Callable, Generator, Protocol
 import numpy as np
 from scipy.signal import butter, filtfilt
 
+from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, MonitorVerdict
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_np import ResidualQueue
@@ -67,6 +68,7 @@ class TickLike(Protocol):
     acc: np.ndarray
     source: str
     model_version: int
+    compute_s: float
 
 
 # --- windows (Algorithm 1) ---------------------------------------------------------------------
@@ -94,9 +96,11 @@ class WindowRecorder:
         self._ground: float | None = None
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
+        self.last_added = False  # whether the newest tick joined the run (the model monitor follows the run)
 
     def add(self, tick: TickLike) -> Window | None:
         """Record one tick; returns a window when this tick completes one."""
+        self.last_added = False
         est = tick.est
         if est is None:
             self._break()
@@ -124,6 +128,7 @@ class WindowRecorder:
             return None
         self._version = tick.model_version
         self._n = i + 1
+        self.last_added = True
         if tick.t - self._t[self._w0] < self.t_col - 1e-9:
             return None
         w0, self._w0 = self._w0, self._n
@@ -237,6 +242,7 @@ class GateVerdict:
     pairs: int
     control_gain: tuple[float, float] = (math.nan, math.nan)  # extreme eigenvalues of sym(I + dr/du)
     velocity_gain: float = math.nan  # largest eigenvalue of sym(dr/dv), 1/s
+    cross_gain: float = math.nan  # largest |off-diagonal| of dr/du
 
 
 @dataclass(frozen=True)
@@ -251,7 +257,13 @@ class GateLimits:
       factor k gives 1/k; the paper's 0.5x and 1.33x give 2 and 0.75). Below it the MPC believes
       its commands barely act, and it saturates;
     - no phantom instability: the eigenvalues of sym(dr/dv) stay below ``max_velocity_gain`` 1/s
-      (drag makes them negative; a positive one says velocity grows on its own).
+      (drag makes them negative; a positive one says velocity grows on its own);
+    - no cross-coupling: |dr_i/du_j| <= ``max_cross_gain`` for i != j. The Mellinger layer points
+      the thrust where the MPC asks, so a mass or thrust-map error scales each axis alike; a
+      window whose commands drift together (u_x rising while a thrust-limited climb decays)
+      fits a spurious dr_z/du_x, and the MPC then tilts hard to "climb" (measured: 0.26 made it
+      command 5 m/s^2 sideways and leave the circle by 0.6 m). 0.2 still admits an 11 deg yaw
+      misalignment between mocap and the vehicle.
     """
 
     max_residual: float
@@ -259,6 +271,7 @@ class GateLimits:
     max_velocity_gain: float
     envelope_x: np.ndarray  # (m, 6)
     envelope_u: np.ndarray  # (m, 3)
+    max_cross_gain: float = math.inf
 
 
 def operating_envelope(
@@ -336,7 +349,8 @@ def gate_steps(
     k = recent_x.shape[0]
     sel = np.concatenate((np.arange(0, k, 8), k + np.arange(limits.envelope_x.shape[0])))
     xs, us = xs[sel], us[sel]
-    g_lo, g_hi, vgain = math.inf, -math.inf, -math.inf
+    g_lo, g_hi, vgain, cross = math.inf, -math.inf, -math.inf, 0.0
+    off = ~np.eye(3, dtype=bool)
     for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
         _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
         if not (math.isfinite(float(jx.sum())) and math.isfinite(float(ju.sum()))):
@@ -345,6 +359,7 @@ def gate_steps(
         jv = jx[:, :, 3:6]
         g_lo, g_hi = min(g_lo, float(gain.min())), max(g_hi, float(gain.max()))
         vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
+        cross = max(cross, float(np.abs(ju[:, off]).max()))
         yield
     e_cand = one_step_rmse(candidate, fresh)
     yield
@@ -353,12 +368,14 @@ def gate_steps(
     lo, hi = limits.control_gain
 
     def verdict(reason: str) -> GateVerdict:
-        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain)
+        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross)
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
     if vgain > limits.max_velocity_gain:
         return verdict(f"velocity feedback {vgain:.2f} 1/s above {limits.max_velocity_gain:g} (phantom instability)")
+    if cross > limits.max_cross_gain:
+        return verdict(f"cross-coupling |dr_i/du_j| {cross:.2f} above {limits.max_cross_gain:g}")
     if n == 0 or not math.isfinite(e_cand):
         return verdict("no held-out data to judge it on")
     if not e_cand < e_cur:
@@ -541,6 +558,7 @@ class LearnerSettings:
     filter_hz: float  # training.velocity_filter_hz
     holdout_fraction: float  # training.validation_fraction: the tail the paper-lockstep gate judges on
     queue_size: int  # knode.queue_size
+    monitor: MonitorSettings | None = None  # drop a flying model the world changed under (None: never)
 
 
 @dataclass(frozen=True)
@@ -570,7 +588,7 @@ class SwapEvent:
     swap_s: float  # the slot write (a reference assignment)
     install_s: float  # fold the file into numpy stacks + gate + swap, spread over tick gaps
     max_slice_s: float  # the longest of those slices: what one tick gap had to absorb
-    kind: str  # "swap" | "rollback"
+    kind: str  # "swap" | "rollback" | "drop"
 
 
 @dataclass
@@ -635,6 +653,7 @@ class OnlineStats:
     accepted: int = 0
     rejected: int = 0
     rollbacks: int = 0
+    drops: int = 0  # flying models the monitor replaced by nominal
     crashes: int = 0
     hangs: int = 0
     restarts: int = 0
@@ -642,6 +661,7 @@ class OnlineStats:
     windows_stale: int = 0  # finished windows dropped because the model changed before they were sent
     pace_wait_s: float = 0.0  # wall time spent holding the simulation back for honest latency
     max_slice_s: float = 0.0  # longest gate/swap slice between two ticks
+    late_ticks: int = 0  # ticks whose compute plus the learner's install work before them exceeded the period
     swap_s: list[float] = field(default_factory=list)
     install_s: list[float] = field(default_factory=list)
     train_wall_s: list[float] = field(default_factory=list)
@@ -666,6 +686,7 @@ class OnlineLearner:
         self.log = log
         self._wall = wall
         self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time)
+        self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)
         self._next_version = slot.version + 1
@@ -678,6 +699,7 @@ class OnlineLearner:
         self._gating: _Gating | None = None
         self._watch: _Watch | None = None
         self.failed = False  # restarts exhausted: learning stopped, flight goes on
+        self._install_work_s = 0.0  # wall time of the last on_tick when it folded, gated or swapped a model
         self.stats = OnlineStats()
         self.rounds: list[RoundRecord] = []
         self.swaps: list[SwapEvent] = []
@@ -686,12 +708,24 @@ class OnlineLearner:
 
     # The loop calls this after every tick.
     def on_tick(self, tick: TickLike) -> None:
+        if self._install_work_s > 0.0 and tick.compute_s + self._install_work_s > self.s.period:
+            self.stats.late_ticks += 1  # on a wall clock this tick started late because of the install work
+        start, paced = self._wall(), self.stats.pace_wait_s
+        installing = self._gating is not None or self._held is not None
+        self._on_tick(tick)
+        installing = installing or self._gating is not None
+        # Pacing (lockstep waiting for the trainer) is simulated wall time, not work.
+        self._install_work_s = (self._wall() - start) - (self.stats.pace_wait_s - paced) if installing else 0.0
+
+    def _on_tick(self, tick: TickLike) -> None:
         t = tick.t
         window = self.recorder.add(tick)
         if window is not None:
             self._on_window(window)
         if self._watch is not None:
             self._watch_tick(tick)
+        if self.monitor is not None and not self.s.paper_lockstep:
+            self._monitor_tick(tick)
         if self.failed:
             return
         if self.s.paper_lockstep:
@@ -923,6 +957,38 @@ class OnlineLearner:
         reason = f"{w.fallbacks} MPC fallbacks in the {self.s.rollback_ticks - w.ticks_left} ticks after swapping in {w.version}"
         self._log_model(t, prev.version, "rollback", reason, swap_s=record.swap_s)
 
+    # --- model monitor -----------------------------------------------------------------------
+
+    def _monitor_tick(self, tick: TickLike) -> None:
+        monitor = self.monitor
+        assert monitor is not None
+        if not self.recorder.last_added:
+            monitor.reset()  # the same ticks the windows use: airborne, flown by the MPC
+            return
+        if monitor.add(tick.t, tick.est.v, tick.acc) and self._flying.model is not None:
+            verdict = monitor.judge(self._flying.model)
+            if verdict.drop:
+                self._drop(tick.t, verdict)
+
+    def _drop(self, t: float, verdict: MonitorVerdict) -> None:
+        """Fly nominal from the next tick: the flying model explains the newest motion worse than no model."""
+        dropped = self._flying.version
+        version, self._next_version = self._next_version, self._next_version + 1
+        record = self.slot.swap(None, version, t)
+        self._flying = _Flying(None, version, None, ())
+        self._model_changed()
+        self._watch = None
+        self._held = None  # trained on the dropped model's data: stale
+        if self._gating is not None:
+            g, self._gating = self._gating, None
+            self._reject(t, g.held, f"stale: its base {g.held.outcome.base_version} was dropped", None)
+        self.stats.drops += 1
+        self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, "drop"))
+        reason = (f"model {dropped} predicts the last {verdict.ticks} ticks worse than nominal "
+                  f"({verdict.error_model:.2f} vs {verdict.error_nominal:.2f} m/s^2 mean acceleration error)")
+        self._log_model(t, version, "drop", reason, swap_s=record.swap_s)
+        self._log_event(t, "warning", f"online: {reason}; flying nominal until the next accepted model")
+
     # --- paper lockstep ----------------------------------------------------------------------
 
     def _paper_step(self, t: float) -> None:
@@ -969,7 +1035,7 @@ class OnlineLearner:
             msg.update(val_error=verdict.rmse_candidate, val_error_current=verdict.rmse_current,
                        val_error_nominal=verdict.rmse_nominal, max_residual=verdict.max_residual,
                        val_pairs=verdict.pairs, control_gain=list(verdict.control_gain),
-                       velocity_gain=verdict.velocity_gain)
+                       velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain)
         if math.isfinite(swap_s):
             msg["swap_ms"] = 1e3 * swap_s
         if math.isfinite(install_s):
@@ -1007,6 +1073,7 @@ class OnlineLearner:
             "models_accepted": s.accepted,
             "models_rejected": s.rejected,
             "models_rolled_back": s.rollbacks,
+            "models_dropped": s.drops,
             "training_failed": s.rounds_failed,
             "models_undecided": int(self._held is not None) + int(self._gating is not None),  # when the flight ended
             "rounds_in_flight": int(self._out is not None),
@@ -1024,6 +1091,7 @@ class OnlineLearner:
             "install_median_ms": _ms(np.median(s.install_s)) if s.install_s else None,
             "install_max_ms": _ms(max(s.install_s)) if s.install_s else None,
             "install_slice_max_ms": _ms(s.max_slice_s) if s.install_s else None,
+            "ticks_late_from_install": s.late_ticks,
             "train_wall_median_s": float(np.median(walls)) if walls.size else None,
             "train_wall_max_s": float(walls.max()) if walls.size else None,
             "train_wall_over_t_col": float(np.median(walls)) / self.s.t_col if walls.size else None,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -13,24 +12,10 @@ import pytest
 from cfknode.flight.online import GateLimits, WindowRecorder, gate_pairs, one_step_rmse, operating_envelope, run_gate
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
+from fakes import Est, Tick
 
 RATE = 400.0
 G = 9.81
-
-
-@dataclass(frozen=True)
-class Est:
-    p: np.ndarray
-    v: np.ndarray
-
-
-@dataclass(frozen=True)
-class Tick:
-    t: float
-    est: Est | None
-    acc: np.ndarray
-    source: str = "mpc"
-    model_version: int = 0
 
 
 def tick(t: float, z: float = 1.0, version: int = 0, source: str = "mpc") -> Tick:
@@ -53,7 +38,7 @@ def linear_residual_model(gain_v: np.ndarray, gain_u: np.ndarray, eps: float = 1
 
 def limits(max_residual: float = 20.0) -> GateLimits:
     x, u = operating_envelope(1.3, np.array([-5.66, -5.66, -4.9]), np.array([5.66, 5.66, 3.83]))
-    return GateLimits(max_residual, (0.25, 4.0), 1.0, x, u)
+    return GateLimits(max_residual, (0.25, 4.0), 1.0, x, u, max_cross_gain=0.2)
 
 
 def flown_data(residual: np.ndarray, n: int = 240, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -191,6 +176,15 @@ def test_gate_rejects_implausible_dynamics_anywhere_in_the_envelope() -> None:
         verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
         assert verdict.velocity_gain == pytest.approx(gain, abs=1e-3)
         assert ("phantom instability" in verdict.reason) == (not ok), (gain, verdict.reason)
+    # Thrust pointed where the MPC asks scales each axis alike: a climb bought by tilting (dr_z/du_x) is
+    # spurious and the MPC would exploit it; a small rotation (yaw misalignment) is allowed.
+    for coupling, ok in ((0.1, True), (0.3, False)):
+        gain_u = np.zeros((3, 3))
+        gain_u[2, 0] = coupling
+        mf = linear_residual_model(np.zeros((3, 3)), gain_u)
+        verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
+        assert verdict.cross_gain == pytest.approx(coupling, abs=1e-3)
+        assert ("cross-coupling" in verdict.reason) == (not ok), (coupling, verdict.reason)
     # Bounded on the recent data but not at the corners of the input box, where the MPC saturates.
     mf = linear_residual_model(np.zeros((3, 3)), 0.6 * np.eye(3))
     verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=3.0))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -16,6 +16,7 @@ from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.trainer_process import TrainOutcome, TrainRequest
 from cfknode.online_wiring import learner_settings
+from fakes import Est, ListLog, Tick
 
 PERIOD = 1.0 / 400.0
 TRUE_R = np.array([0.0, 0.0, -2.0])  # the plant: v' = u + TRUE_R
@@ -27,32 +28,6 @@ def constant_model(r: np.ndarray, n_networks: int = 1) -> ModelFile:
     net = NetworkWeights(((np.zeros((4, 6)), np.zeros(4)), (np.zeros((3, 4)), np.asarray(r) / w)),
                          Normalisation.identity())
     return ModelFile((4,), "tanh", 3, (net,) * n_networks)
-
-
-@dataclass(frozen=True)
-class Est:
-    p: np.ndarray
-    v: np.ndarray
-
-
-@dataclass(frozen=True)
-class Tick:
-    t: float
-    est: Est
-    acc: np.ndarray
-    source: str
-    model_version: int
-
-
-class ListLog:
-    def __init__(self) -> None:
-        self.messages: list[tuple[str, float, dict[str, Any]]] = []
-
-    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None:
-        self.messages.append((topic, t, dict(msg)))
-
-    def topic(self, name: str) -> list[dict[str, Any]]:
-        return [m for topic, _, m in self.messages if topic == name]
 
 
 class ScriptedTrainer:
@@ -108,6 +83,7 @@ class Flight:
         self.k = 0
         self.v = np.zeros(3)
         self.rng = np.random.default_rng(0)
+        self.r = TRUE_R.copy()  # the plant's residual (a test may change the world mid-flight)
 
     def run(self, seconds: float, source: str = "mpc") -> None:
         for _ in range(int(round(seconds / PERIOD))):
@@ -115,7 +91,7 @@ class Flight:
             u = np.array([0.3 * math.sin(5 * t), 0.2 * math.cos(4 * t), 2.0 + 0.3 * math.sin(3 * t)])
             est = Est(np.array([0.0, 0.0, 1.0 if self.k else 0.0]), self.v.copy())
             self.learner.on_tick(Tick(t, est, u, source, self.slot.version))
-            self.v = self.v + PERIOD * (u + TRUE_R)
+            self.v = self.v + PERIOD * (u + self.r)
             self.k += 1
 
 
@@ -184,6 +160,31 @@ def test_fallbacks_right_after_a_swap_roll_back_and_stale_results_are_refused() 
     answers.append(lambda req: replace(outcome_with(constant_model(TRUE_R), req), base_version=1))
     flight.run(0.8)
     assert learner.rounds[-1].outcome == "reject" and learner.rounds[-1].reason.startswith("stale")
+
+
+def test_a_model_the_world_changed_under_is_dropped_for_nominal() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.run(0.8)
+    assert slot.version == 1 and learner.stats.drops == 0  # the right model is never dropped
+    flight.r = np.array([0.0, 0.0, 0.5])  # the world changes (the payload is gone): the model's -2 m/s^2 is wrong
+    trainer.answer = lambda req: outcome_with(constant_model(flight.r), req)
+    flight.run(0.15)
+    assert slot.model is None and slot.version == 2 and learner.stats.drops == 1
+    drop = log.topic("/model")[-1]
+    assert drop["event"] == "drop" and "worse than nominal" in drop["reason"] and 0.8 < log.messages[-1][1] < 0.95
+    assert learner.swaps[-1].kind == "drop" and learner.summary_fields()["models_dropped"] == 1
+    flight.run(0.7)
+    first_after = trainer.requests[-1]
+    assert first_after.base is None and first_after.window.version == 2  # flown under nominal only
+    assert slot.version == first_after.version  # and learning goes on from nominal
+
+
+def test_the_monitor_can_be_turned_off() -> None:
+    flight, learner, _, _, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req), monitor=False)
+    flight.run(0.8)
+    flight.r = np.array([0.0, 0.0, 0.5])
+    flight.run(0.3)
+    assert learner.monitor is None and learner.stats.drops == 0 and slot.version == 1
 
 
 def test_a_crash_restarts_the_trainer_and_the_window_waits() -> None:
