@@ -15,14 +15,11 @@ import argparse
 import concurrent.futures as cf
 import json
 import multiprocessing
-import subprocess
-import sys
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 CELLS = tuple((r, v) for r in (2.0, 3.0, 4.0) for v in (0.8, 1.0, 1.2))
 CONTROLLERS = ("nominal", "offline", "geometric", "online")
@@ -64,28 +61,18 @@ def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: s
     import time
 
     from cfknode.config import load_config
-    from cfknode.flight.trajectory import make_trajectory
+    from cfknode.mass_steps import CONTROLLER_OVERRIDES, mass_schedule, train_offline_model
     from cfknode.mission import run_flight
 
     start = time.perf_counter()
     base = cell_overrides(radius, speed, duration, out_dir, seed)
-    t0 = make_trajectory(load_config(overrides=base).trajectory, np.zeros(3)).segments["pattern"][0]
-    first = [{"t": t0 + 2.0 * duration / 8.0, "factor": 0.5}]
-    both = first + [{"t": t0 + 5.0 * duration / 8.0, "factor": 1.33}]
+    schedule = mass_schedule(base, (2.0 * duration / 8.0, 5.0 * duration / 8.0))
     name = f"r{radius:g}-v{speed:g}"
-    training = run_flight(load_config(overrides={**base, "sim.mass_changes": first}), name_hint=f"{name}-first-change")
-    model = Path(out_dir) / f"{name}-offline.ckpt"
-    subprocess.run([sys.executable, "-m", "cfknode", "train", "--log", training.summary.log_path, "--out", str(model)],
-                   check=True, capture_output=True, text=True)
-    variants = {
-        "nominal": {},
-        "offline": {"controller.model": str(model)},
-        "geometric": {"controller.kind": "geometric"},
-        "online": {"online.enabled": True},
-    }
+    model = train_offline_model(base, schedule, Path(out_dir), name)
     mse, mse_z, outcome, online = {}, {}, {}, {}
-    for kind, extra in variants.items():
-        res = run_flight(load_config(overrides={**base, "sim.mass_changes": both, **extra}), name_hint=f"{name}-{kind}")
+    for kind in CONTROLLERS:
+        overrides = {**base, "sim.mass_changes": list(schedule.both), **CONTROLLER_OVERRIDES[kind](model)}
+        res = run_flight(load_config(overrides=overrides), name_hint=f"{name}-{kind}")
         mse[kind], mse_z[kind], outcome[kind] = res.summary.mse, res.summary.mse_z, res.outcome.message
         if kind == "online":
             online = {k: v for k, v in res.summary.extra.items() if k.startswith(("models_", "swap_", "train_wall"))}

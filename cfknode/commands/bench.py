@@ -14,7 +14,8 @@ from typing import Callable
 
 from cfknode.cli import UsageError
 
-HELP = "benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures the real-time parts"
+HELP = ("benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures the real-time parts, "
+        "'online' flies the online-learning acceptance protocol")
 
 
 def _version() -> str:
@@ -124,10 +125,24 @@ def _run_timing(args: argparse.Namespace) -> int:
 
     return run_timing(args)
 
+def _add_online_arguments(p: argparse.ArgumentParser) -> None:
+    from cfknode.bench_online import add_online_arguments
+
+    add_online_arguments(p)
+
+
+def _run_online(args: argparse.Namespace) -> int:
+    from cfknode.bench_online import run_online
+
+    return run_online(args, _version())
+
+
 BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
     "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
                _run_timing),
+    "online": ("issue 4's protocol: online vs nominal and offline KNODE-MPC under the paper's mass changes",
+               _add_online_arguments, _run_online),
 }
 
 
