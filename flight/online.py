@@ -28,6 +28,7 @@ does (reproduction only).
 
 from __future__ import annotations
 
+import functools
 import math
 import multiprocessing
 import time
@@ -182,6 +183,11 @@ class GatePairs:
         return int(self.dt.shape[0])
 
 
+@functools.lru_cache(maxsize=8)
+def _butter(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
+    return butter(order, wn)
+
+
 def gate_pairs(t: np.ndarray, x: np.ndarray, u: np.ndarray, filter_hz: float) -> GatePairs:
     """Pairs from one contiguous run, low-pass filtered exactly as ``make_dataset`` filters training data.
 
@@ -194,10 +200,11 @@ def gate_pairs(t: np.ndarray, x: np.ndarray, u: np.ndarray, filter_hz: float) ->
         fs = 1.0 / float(np.median(np.diff(t)))
         wn = filter_hz / (0.5 * fs)
         if wn < 1.0 and n > 3 * (FILTER_ORDER + 1):
-            b, a = butter(FILTER_ORDER, wn)
+            b, a = _butter(FILTER_ORDER, round(wn, 12))
             padlen = min(int(math.ceil(3.0 * fs / filter_hz)), n - 1)
-            x = filtfilt(b, a, x, axis=0, padlen=padlen)
-            u = filtfilt(b, a, u, axis=0, padlen=padlen)
+            # One pass over (x, u) together: this runs in a tick gap, where every 0.1 ms counts.
+            xu = filtfilt(b, a, np.concatenate((x, u), axis=1), axis=0, padlen=padlen)
+            x, u = xu[:, :6], xu[:, 6:]
     dt = np.diff(t)
     ok = dt > 0
     if ok.any():
@@ -364,6 +371,7 @@ def gate_steps(
     e_cand = one_step_rmse(candidate, fresh)
     yield
     e_cur = one_step_rmse(current, fresh)
+    yield
     e_nom = e_cur if current is None else one_step_rmse(None, fresh)
     lo, hi = limits.control_gain
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cfknode.config import load_config
 from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, mean_acceleration_error
 
 RATE = 400.0
-SETTINGS = MonitorSettings(window_s=0.1, every_ticks=10, margin=1.5, floor=0.5)
+_O = load_config().online
+SETTINGS = MonitorSettings(_O.monitor_window_s, _O.monitor_every_ticks, _O.monitor_margin, _O.monitor_floor)  # defaults
 
 
 class Constant:
