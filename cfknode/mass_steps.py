@@ -17,23 +17,25 @@ import numpy as np
 
 FIRST_FACTOR = 0.5
 SECOND_FACTOR = 1.33
+PAPER_STEPS = ((2.0, FIRST_FACTOR), (5.0, SECOND_FACTOR))  # (s after the pattern starts, mass / nominal)
 
 
 @dataclass(frozen=True)
 class MassSchedule:
     first: tuple[dict[str, float], ...]  # only the first change (the offline model's training flight)
-    both: tuple[dict[str, float], ...]  # the evaluation flights
+    both: tuple[dict[str, float], ...]  # every change: the evaluation flights
 
 
-def mass_schedule(overrides: dict[str, Any], at: tuple[float, float] = (2.0, 5.0)) -> MassSchedule:
-    """Changes at ``at`` seconds after the pattern of the configured trajectory starts."""
+def mass_schedule(overrides: dict[str, Any], at: tuple[float, ...] = (2.0, 5.0),
+                  factors: tuple[float, ...] = (FIRST_FACTOR, SECOND_FACTOR)) -> MassSchedule:
+    """Changes to ``factors`` at ``at`` seconds after the pattern of the configured trajectory starts."""
     from cfknode.config import load_config
     from cfknode.flight.trajectory import make_trajectory
 
     cfg = load_config(overrides=overrides)
     t0 = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float)).segments["pattern"][0]
-    first = ({"t": t0 + at[0], "factor": FIRST_FACTOR},)
-    return MassSchedule(first, first + ({"t": t0 + at[1], "factor": SECOND_FACTOR},))
+    changes = tuple({"t": t0 + t, "factor": f} for t, f in zip(at, factors, strict=True))
+    return MassSchedule(changes[:1], changes)
 
 
 def train_offline_model(overrides: dict[str, Any], schedule: MassSchedule, out: Path, name: str) -> Path:
@@ -62,4 +64,5 @@ CONTROLLER_OVERRIDES: dict[str, Any] = {
 }
 
 
-__all__ = ["CONTROLLER_OVERRIDES", "FIRST_FACTOR", "MassSchedule", "SECOND_FACTOR", "mass_schedule", "train_offline_model"]
+__all__ = ["CONTROLLER_OVERRIDES", "FIRST_FACTOR", "MassSchedule", "PAPER_STEPS", "SECOND_FACTOR", "mass_schedule",
+           "train_offline_model"]
