@@ -100,11 +100,9 @@ def markdown(results: list[CellResult], command: str, version: str) -> str:
     return "\n".join(lines)
 
 
-def run_hierarchical(args: argparse.Namespace, out: Path) -> int:
+def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from cfknode import __version__
 
     cells = CELLS[:1] if args.quick else CELLS
     duration = 4.0 if args.quick else 8.0
@@ -124,10 +122,10 @@ def run_hierarchical(args: argparse.Namespace, out: Path) -> int:
             results.append(res)
             bar.update(task, advance=1, last=f"r={res.radius:g} v={res.speed:g}: online {res.mse['online']:.4f}")
     results.sort(key=lambda r: (r.radius, r.speed))
-    md = markdown(results, command, __version__)
+    md = markdown(results, command, version)
     stem = "paper_hierarchical" + ("_quick" if args.quick else "")
     (out / f"{stem}.md").write_text(md + "\n")
-    (out / f"{stem}.json").write_text(json.dumps({"command": command, "version": __version__,
+    (out / f"{stem}.json").write_text(json.dumps({"command": command, "version": version,
                                                   "cells": [asdict(r) for r in results]}, indent=1))
     console.print(md)
     console.print(f"wrote {out / (stem + '.md')}, {out / (stem + '.json')}; flight logs in {logs}")

@@ -105,7 +105,7 @@ def _paper_full(args: argparse.Namespace, out: Path) -> int:
 def _paper_hierarchical(args: argparse.Namespace, out: Path) -> int:
     from cfknode.bench_hierarchical import run_hierarchical
 
-    return run_hierarchical(args, out)
+    return run_hierarchical(args, out, _version())
 
 
 PAPER_MODES: dict[str, Callable[[argparse.Namespace, Path], int]] = {
