@@ -125,7 +125,7 @@ class TrainingConfig:
     epochs: int
     lr: float
     weight_decay: float
-    method: Literal["rk4", "dopri5"]
+    method: Literal["rk4", "euler", "dopri5"]
     adjoint: bool
     seed: int
     velocity_filter_hz: float
@@ -146,6 +146,7 @@ class OnlineConfig:
     enabled: bool
     t_col: float
     epochs: int
+    method: Literal["rk4", "euler", "dopri5"]
     lr: float
     weight_decay: float
     warm_start: bool

@@ -51,9 +51,10 @@ def online_model_slot(cfg: Config, slot: ModelSlot | None) -> ModelSlot | None:
 
 
 def trainer_settings(cfg: Config) -> TrainerSettings:
-    """Each round: the ``training`` section with the online epochs, learning rate and weight decay."""
+    """Each round: the ``training`` section with the online epochs, learning rate, weight decay and method."""
     o = cfg.online
-    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay)
+    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay,
+                                   method=o.method)
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
 
 

@@ -239,7 +239,7 @@ def _batch(queue: KnodeQueue, p: Pairs, model: TrainingResidual | None = None) -
 def _integrate(batch: _Batch, method: str, adjoint: bool, step_size: float, params: Sequence[torch.Tensor]) -> torch.Tensor:
     """x at s = 1 for every pair: one batched odeint call."""
     s = torch.tensor([0.0, 1.0], dtype=batch.x0.dtype)
-    options = {"step_size": step_size} if method == "rk4" else None
+    options = {"step_size": step_size} if method in ("rk4", "euler") else None
     if adjoint:
         traj = odeint_adjoint(
             batch.ode, batch.x0, s, method=method, options=options, adjoint_options=options, adjoint_params=tuple(params)
