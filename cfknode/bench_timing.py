@@ -101,7 +101,7 @@ def training_round(cfg: Config, t_col: float, epochs: int, rounds: int = 5) -> T
     n = int(round(t_col * cfg.controller.rate_hz)) + 1
     walls = []
     initial = None
-    training = dataclasses.replace(cfg.training, epochs=epochs)
+    training = dataclasses.replace(cfg.training, epochs=epochs, method=cfg.online.method)  # as online rounds run
     for k in range(rounds):
         t = k * t_col + np.arange(n) / cfg.controller.rate_hz
         u = rng.normal(0, 1.0, (n, 3)) * [0.3, 0.3, 0.5] + [0, 0, 2.0]
@@ -114,7 +114,7 @@ def training_round(cfg: Config, t_col: float, epochs: int, rounds: int = 5) -> T
         from cfknode.models.knode import from_torch_queue
 
         initial = from_torch_queue(queue)
-    return Timing.of(f"training round: {epochs} epochs on a {t_col:g} s window", np.array(walls),
+    return Timing.of(f"training round: {epochs} epochs ({training.method}) on a {t_col:g} s window", np.array(walls),
                      note=f"t_col = {t_col * 1e3:.0f} ms")
 
 
