@@ -24,7 +24,9 @@ from typing import Any, Iterator
 from cfknode.config import Config, ConfigError
 from cfknode.flight.model_monitor import MonitorSettings
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.online import GateLimits, LearnerSettings, OnlineLearner, TrainerClient, operating_envelope
+from cfknode.flight.online import LearnerSettings, OnlineLearner
+from cfknode.flight.online_gate import GateLimits, operating_envelope
+from cfknode.flight.trainer_client import TrainerClient
 from cfknode.models.trainer_process import TrainerSettings
 
 # Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from cfknode.flight.online import GateLimits, WindowRecorder, gate_pairs, one_step_rmse, operating_envelope, run_gate
+from cfknode.flight.online_gate import GateLimits, gate_pairs, one_step_rmse, operating_envelope, run_gate
+from cfknode.flight.online_windows import WindowRecorder
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from fakes import Est, Tick

@@ -11,7 +11,8 @@ import pytest
 
 from cfknode.config import load_config
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.online import OnlineLearner, TrainerFault
+from cfknode.flight.online import OnlineLearner
+from cfknode.flight.trainer_client import TrainerFault
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.trainer_process import TrainOutcome, TrainRequest

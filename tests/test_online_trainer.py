@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from cfknode.config import FaultInjection, load_config
-from cfknode.flight.online import TrainerClient, TrainerFault
+from cfknode.flight.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.knode import KnodeQueue, to_torch_queue
 from cfknode.models.modelfile import Normalisation
 from cfknode.models.residual_np import ResidualQueue

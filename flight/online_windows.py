@@ -1,0 +1,121 @@
+"""Online learning's data windows (the paper's Algorithm 1): airborne MPC ticks cut into windows of ``t_col``.
+
+A swap or rollback discards the partial window, so every window was flown under one model.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import numpy as np
+
+from cfknode.models.trainer_process import Window
+
+# Same rules as offline training data (cfknode.flight_data, which imports torch through its Segment):
+MIN_HEIGHT = 0.1  # m above the first estimate: ground effect and contact are not the model's business
+ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks were not
+
+
+class TickLike(Protocol):
+    t: float
+    est: Any
+    acc: np.ndarray
+    source: str
+    model_version: int
+    compute_s: float
+
+
+class WindowRecorder:
+    """Cuts the run of eligible ticks into windows of ``t_col``; keeps the run for the gate.
+
+    A *run* is the newest contiguous stretch of eligible ticks under one model; anything else
+    (on the ground, a fallback tick, another model version, ``reset``) ends it and discards the
+    partial window. Storage is preallocated (``keep_s`` of ticks); adding a tick is a few
+    array stores.
+    """
+
+    def __init__(self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0) -> None:
+        self.t_col = t_col
+        self.start_time = start_time
+        cap = int(math.ceil(max(keep_s, 3.0 * t_col) * rate_hz)) + 8
+        self._t = np.empty(cap)
+        self._x = np.empty((cap, 6))
+        self._u = np.empty((cap, 3))
+        self._n = 0  # ticks in the run buffer
+        self._w0 = 0  # first tick of the current window in the buffer
+        self._version: int | None = None
+        self._ground: float | None = None
+        self.windows = 0  # windows completed
+        self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
+        self.last_added = False  # whether the newest tick joined the run (the model monitor follows the run)
+
+    def add(self, tick: TickLike) -> Window | None:
+        """Record one tick; returns a window when this tick completes one."""
+        self.last_added = False
+        est = tick.est
+        if est is None:
+            self._break()
+            return None
+        if self._ground is None:
+            self._ground = float(est.p[2])
+        if (
+            tick.source not in ELIGIBLE_SOURCES
+            or tick.t < self.start_time
+            or est.p[2] <= self._ground + MIN_HEIGHT
+        ):
+            self._break()
+            return None
+        if self._version is not None and tick.model_version != self._version:
+            self._break()  # defensive: the learner resets on its own swaps; anyone else's also ends the run
+        if self._n == self._t.shape[0]:
+            self._compact()
+        i = self._n
+        self._t[i] = tick.t
+        self._x[i, 0:3] = est.p
+        self._x[i, 3:6] = est.v
+        self._u[i] = tick.acc
+        if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
+            self._break()
+            return None
+        self._version = tick.model_version
+        self._n = i + 1
+        self.last_added = True
+        if tick.t - self._t[self._w0] < self.t_col - 1e-9:
+            return None
+        w0, self._w0 = self._w0, self._n
+        self.windows += 1
+        return Window(self.windows, self._t[w0 : self._n].copy(), self._x[w0 : self._n].copy(),
+                      self._u[w0 : self._n].copy(), tick.model_version)
+
+    def reset(self) -> None:
+        """A model change: the partial window (flown under the old model) is discarded."""
+        self._break()
+
+    def count_after(self, after: float) -> int:
+        """How many of the run's ticks have t > ``after``."""
+        return self._n - int(np.searchsorted(self._t[: self._n], after, side="right"))
+
+    def fresh(self, after: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Copies of the run's ticks with t > ``after`` (all flown under the current model)."""
+        k = int(np.searchsorted(self._t[: self._n], after, side="right"))
+        return self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy()
+
+    def _break(self) -> None:
+        if self._n > self._w0:
+            self.discarded += 1
+        self._n = self._w0 = 0
+        self._version = None
+
+    def _compact(self) -> None:
+        # Keep the newest half (always more than the current window, as capacity >= 3 t_col).
+        keep = min(self._n - self._w0 + self._t.shape[0] // 2, self._n)
+        start = self._n - keep
+        self._t[:keep] = self._t[start : self._n]
+        self._x[:keep] = self._x[start : self._n]
+        self._u[:keep] = self._u[start : self._n]
+        self._w0 -= start
+        self._n = keep
+
+
+__all__ = ["ELIGIBLE_SOURCES", "MIN_HEIGHT", "TickLike", "WindowRecorder"]

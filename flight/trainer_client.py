@@ -1,0 +1,170 @@
+"""The flight side of the trainer process: spawn it, send requests, receive results, detect crashes and hangs.
+
+No torch here: the child runs ``cfknode.models.trainer_process.trainer_main``, and only numpy
+windows and ``ModelFile``s cross the pipe.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from cfknode.models.trainer_process import TrainerReady, TrainerSettings, TrainOutcome, TrainRequest, trainer_main
+
+
+@dataclass(frozen=True)
+class TrainerFault:
+    kind: str  # "crash" | "hang"
+    reason: str
+
+
+class TrainerClient:
+    """The trainer child process: spawn, requests, results, crash and hang detection, restarts.
+
+    States: ``starting`` (spawned, importing torch), ``idle``, ``busy`` (one request out),
+    ``stopped``. Nothing here blocks unless asked to (``wait_ready``, ``poll(timeout)``).
+    """
+
+    def __init__(
+        self,
+        settings: TrainerSettings,
+        timeout: float,
+        start_timeout: float = 120.0,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.settings = settings
+        self.timeout = timeout
+        self.start_timeout = start_timeout
+        self._wall = wall
+        self._ctx = multiprocessing.get_context("spawn")
+        self._proc: Any = None
+        self._conn: Any = None
+        self._dead: list[Any] = []  # killed processes not yet reaped
+        self.state = "stopped"
+        self.sent_wall = math.nan  # wall time the outstanding request was sent
+        self.start_wall = math.nan  # wall time of the last start
+        self.starts = 0
+        self.pid: int | None = None
+        self.warmup_s = math.nan
+
+    def start(self) -> None:
+        """Spawn a trainer (non-blocking: it reports ``TrainerReady`` when torch is up)."""
+        self._reap()
+        parent, child = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(target=trainer_main, args=(child, self.settings), name="cfknode-trainer", daemon=True)
+        proc.start()
+        child.close()  # only the child holds it now, so its death reads as EOF here
+        self._proc, self._conn = proc, parent
+        self.pid = proc.pid
+        self.state = "starting"
+        self.start_wall = self._wall()
+        self.starts += 1
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Block until the trainer is up (pre-flight); False on timeout or failure."""
+        deadline = self._wall() + timeout
+        while self.state == "starting":
+            left = deadline - self._wall()
+            if left <= 0:
+                return False
+            event = self.poll(left)
+            if isinstance(event, TrainerFault):
+                return False
+        return self.state == "idle"
+
+    @property
+    def busy(self) -> bool:
+        return self.state == "busy"
+
+    def submit(self, request: TrainRequest) -> None:
+        if self.state != "idle":
+            raise RuntimeError(f"trainer is {self.state}, not idle")
+        # Clock first: the child may start training before send() returns on a busy machine.
+        self.sent_wall = self._wall()
+        self._conn.send(request)
+        self.state = "busy"
+
+    def poll(self, timeout: float = 0.0) -> TrainOutcome | TrainerReady | TrainerFault | None:
+        """The trainer's next message, or a fault; waits up to ``timeout`` s (0: never blocks)."""
+        if self.state in ("stopped",):
+            return None
+        deadline = self._deadline()
+        if deadline is not None:
+            timeout = min(timeout, max(0.0, deadline - self._wall()))  # never wait past the hang deadline
+        try:
+            ready = self._conn.poll(timeout) if timeout > 0 else self._conn.poll()
+            message = self._conn.recv() if ready else None
+        except (EOFError, OSError):
+            code = self._proc.exitcode if self._proc is not None else None
+            if code is None:
+                self._proc.join(0.05)
+                code = self._proc.exitcode
+            self._discard_process(kill=True)
+            return TrainerFault("crash", f"trainer process exited (code {code})")
+        if message is None:
+            if deadline is not None and self._wall() >= deadline:
+                what = (f"no result within online.trainer_timeout = {self.timeout:g} s" if self.state == "busy"
+                        else f"not up within {self.start_timeout:g} s of starting")
+                self._discard_process(kill=True)
+                return TrainerFault("hang", f"{what}; killed")
+            return None
+        if isinstance(message, TrainerReady):
+            self.state = "idle"
+            self.warmup_s = message.warmup_s
+        elif isinstance(message, TrainOutcome):
+            self.state = "idle"
+        return message
+
+    def _deadline(self) -> float | None:
+        if self.state == "busy":
+            return self.sent_wall + self.timeout
+        if self.state == "starting":
+            return self.start_wall + self.start_timeout
+        return None
+
+    def kill(self) -> None:
+        """Kill the trainer at once (fault injection; the next ``poll`` reports the crash)."""
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Ask the trainer to stop; kill it if it does not within ``timeout``."""
+        if self._proc is not None:
+            try:
+                if self.state in ("idle", "starting"):
+                    self._conn.send(None)
+            except (OSError, ValueError):
+                pass
+            if self.state == "idle":
+                self._proc.join(timeout)
+            self._discard_process(kill=True)
+        self._reap(timeout)
+        self.state = "stopped"
+
+    def _discard_process(self, kill: bool) -> None:
+        proc, conn = self._proc, self._conn
+        self._proc = self._conn = None
+        self.state = "stopped"
+        if conn is not None:
+            conn.close()
+        if proc is not None:
+            if kill and proc.is_alive():
+                proc.kill()
+            self._dead.append(proc)
+        self._reap()
+
+    def _reap(self, timeout: float = 0.0) -> None:
+        alive = []
+        for proc in self._dead:
+            proc.join(timeout)
+            if proc.exitcode is None:
+                alive.append(proc)
+            else:
+                proc.close()
+        self._dead = alive
+
+
+__all__ = ["TrainerClient", "TrainerFault"]
