@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -39,3 +39,51 @@ class ListLog:
 
     def topic(self, name: str) -> list[dict[str, Any]]:
         return [m for topic, _, m in self.messages if topic == name]
+
+
+class RecordingFirmware:
+    """The firmware inputs the sim:// link driver calls, recorded as (name, t, *args).
+
+    ``note`` is called on every input and its value kept in ``notes`` (a test records, say, the
+    thread that delivered the packet, or whether the simulator's lock was held).
+    """
+
+    def __init__(self, note: Callable[[], Any] = lambda: None) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.notes: list[Any] = []
+        self.supervisor_state = "idle"
+        self._note = note
+
+    def _record(self, *call: Any) -> None:
+        self.notes.append(self._note())
+        self.calls.append(call)
+
+    def named(self, name: str) -> list[tuple[Any, ...]]:
+        return [c for c in self.calls if c[0] == name]
+
+    def on_rpyt(self, t: float, roll: float, pitch: float, yawrate: float, thrust: int) -> None:
+        self._record("rpyt", t, roll, pitch, yawrate, thrust)
+
+    def on_stop(self, t: float) -> None:
+        self._record("stop", t)
+
+    def on_notify_setpoint_stop(self, t: float) -> None:
+        self._record("notify_stop", t)
+
+    def on_hl_stop(self, t: float) -> None:
+        self._record("hl_stop", t)
+
+    def on_extpose(self, t: float, pos: tuple, quat_xyzw: tuple) -> None:
+        self._record("extpose", t, pos, quat_xyzw)
+
+    def on_emergency_stop(self, t: float) -> None:
+        self._record("estop", t)
+
+    def on_emergency_stop_watchdog(self, t: float) -> None:
+        self._record("heartbeat", t)
+
+    def power_off(self, t: float) -> None:
+        self._record("power_off", t)
+
+    def power_on(self, t: float) -> None:
+        self._record("power_on", t)

@@ -24,49 +24,9 @@ from cfknode.sim_backend.link_driver import (
     supervisor_bitfield,
     unregister_simulator,
 )
+from fakes import RecordingFirmware
 
 _uris = itertools.count(9100)
-
-
-class RecordingFirmware:
-    """Records every call the driver makes, and whether the simulator's lock was held."""
-
-    def __init__(self, lock: threading.Lock) -> None:
-        self.calls: list[tuple[Any, ...]] = []
-        self.lock_held: list[bool] = []
-        self.supervisor_state = "idle"
-        self._lock = lock
-
-    def _record(self, *call: Any) -> None:
-        self.lock_held.append(self._lock.locked())
-        self.calls.append(call)
-
-    def on_rpyt(self, t: float, roll: float, pitch: float, yawrate: float, thrust: int) -> None:
-        self._record("rpyt", t, roll, pitch, yawrate, thrust)
-
-    def on_stop(self, t: float) -> None:
-        self._record("stop", t)
-
-    def on_notify_setpoint_stop(self, t: float) -> None:
-        self._record("notify_stop", t)
-
-    def on_hl_stop(self, t: float) -> None:
-        self._record("hl_stop", t)
-
-    def on_extpose(self, t: float, pos: tuple, quat_xyzw: tuple) -> None:
-        self._record("extpose", t, pos, quat_xyzw)
-
-    def on_emergency_stop(self, t: float) -> None:
-        self._record("estop", t)
-
-    def on_emergency_stop_watchdog(self, t: float) -> None:
-        self._record("estop_watchdog", t)
-
-    def power_off(self, t: float) -> None:
-        self._record("power_off", t)
-
-    def power_on(self, t: float) -> None:
-        self._record("power_on", t)
 
 
 class FakeSim:
@@ -77,7 +37,7 @@ class FakeSim:
     def __init__(self) -> None:
         self.t = 0.0
         self.lock = threading.Lock()
-        self.firmware = RecordingFirmware(self.lock)
+        self.firmware = RecordingFirmware(note=self.lock.locked)
         self.battery_voltage = 3.95
         self._observers: list = []
 
@@ -171,7 +131,7 @@ def test_rpyt_reaches_firmware_as_on_the_wire(
     cf.commander.send_setpoint(roll, pitch, yawrate, thrust)
     # cflib negates pitch; yaw rate and thrust travel as given (the firmware clamps, not cflib).
     assert sim.firmware.calls == [("rpyt", 1.25, f32(roll), f32(-pitch), f32(yawrate), thrust)]
-    assert sim.firmware.lock_held == [True]
+    assert sim.firmware.notes == [True]
     assert cf.link.setpoints == 1
 
 
@@ -185,7 +145,7 @@ def test_extpose_quaternion_is_xyzw_on_the_wire(connected: tuple[FakeSim, Crazyf
     assert (name, t) == ("extpose", 0.5)
     assert pos == (1.5, -2.25, 0.75)
     assert quat == tuple(f32(v) for v in q)
-    assert sim.firmware.lock_held == [True]
+    assert sim.firmware.notes == [True]
     assert cf.link.extposes == 1
 
 
@@ -198,7 +158,7 @@ def test_stop_notify_and_hl_stop_decoded(connected: tuple[FakeSim, Crazyflie]) -
     sim.t = 2.02
     cf.high_level_commander.stop()
     assert sim.firmware.calls == [("stop", 2.0), ("notify_stop", 2.01), ("hl_stop", 2.02)]
-    assert all(sim.firmware.lock_held)
+    assert all(sim.firmware.notes)
 
 
 def test_unknown_and_malformed_packets_are_counted_not_fatal(connected: tuple[FakeSim, Crazyflie]) -> None:
@@ -425,8 +385,8 @@ def test_emergency_stop_and_its_watchdog_are_decoded(connected: tuple[FakeSim, C
     cf.send_packet(CRTPPacket(0x61, bytes((3,))))
     before = cf.link.unknown_packets
     cf.send_packet(CRTPPacket(0x91, bytes((0x01, 1))))  # arming request: not modelled
-    assert sim.firmware.calls == [("estop_watchdog", 3.0), ("estop", 3.2), ("estop_watchdog", 3.4), ("estop", 3.4)]
-    assert all(sim.firmware.lock_held)
+    assert sim.firmware.calls == [("heartbeat", 3.0), ("estop", 3.2), ("heartbeat", 3.4), ("estop", 3.4)]
+    assert all(sim.firmware.notes)
     assert cf.link.unknown_packets == before + 1
 
 

@@ -13,44 +13,9 @@ from cfknode.config import load_config
 from cfknode.flight.mellinger import AttitudeSetpoint
 from cfknode.flight.radio import CflibRadio, HardwareRadio, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
+from fakes import RecordingFirmware
 
 _uris = itertools.count(9300)
-
-
-class ThreadRecordingFirmware:
-    """Records (call, sim time, args, sending thread) for every firmware input."""
-
-    supervisor_state = "idle"
-
-    def __init__(self, sim: "FakeSim") -> None:
-        self.calls: list[tuple[Any, ...]] = []
-        self.threads: list[int] = []
-        self._sim = sim
-
-    def _record(self, *call: Any) -> None:
-        self.threads.append(threading.get_ident())
-        self.calls.append(call)
-
-    def on_rpyt(self, t: float, roll: float, pitch: float, yawrate: float, thrust: int) -> None:
-        self._record("rpyt", t, roll, pitch, yawrate, thrust)
-
-    def on_stop(self, t: float) -> None:
-        self._record("stop", t)
-
-    def on_notify_setpoint_stop(self, t: float) -> None:
-        self._record("notify_stop", t)
-
-    def on_hl_stop(self, t: float) -> None:
-        self._record("hl_stop", t)
-
-    def on_extpose(self, t: float, pos: tuple, quat_xyzw: tuple) -> None:
-        self._record("extpose", t, pos, quat_xyzw)
-
-    def on_emergency_stop_watchdog(self, t: float) -> None:
-        self._record("heartbeat", t)
-
-    def named(self, name: str) -> list[tuple[Any, ...]]:
-        return [c for c in self.calls if c[0] == name]
 
 
 class FakeSim:
@@ -60,7 +25,7 @@ class FakeSim:
     def __init__(self) -> None:
         self.t = 0.0
         self.lock = threading.RLock()
-        self.firmware = ThreadRecordingFirmware(self)
+        self.firmware = RecordingFirmware(note=threading.get_ident)
 
     def add_step_observer(self, cb: Any) -> None:
         pass
@@ -131,7 +96,7 @@ def test_lockstep_pump_sends_newest_setpoint_at_tx_rate(sim_uri: tuple[FakeSim, 
             assert (t, roll, wire_pitch, yawrate, thrust) == (k * period, k, 0.5 * k, 2.0 * k, 20000 + k)
         assert radio.stats().setpoints_sent == 11
         assert radio.stats().last_send_time == pytest.approx(36 * period)
-        assert all(tid == threading.get_ident() for tid in sim.firmware.threads)  # no thread sends
+        assert all(tid == threading.get_ident() for tid in sim.firmware.notes)  # no thread sends
     finally:
         radio.shutdown()
 
@@ -169,14 +134,14 @@ def test_threaded_mode_sends_from_its_own_thread(sim_uri: tuple[FakeSim, str]) -
         assert wait_for(lambda: len(sim.firmware.named("rpyt")) >= 4 and sim.firmware.named("extpose"))
         radio.set_setpoint(AttitudeSetpoint(-1.0, -2.0, -3.0, 13000))
         assert wait_for(lambda: sim.firmware.named("rpyt")[-1][2:] == (-1.0, 2.0, -3.0, 13000))
-        sent_threads = set(sim.firmware.threads[n_unlock:])
+        sent_threads = set(sim.firmware.notes[n_unlock:])
         assert caller not in sent_threads and len(sent_threads) == 1
         extpose = sim.firmware.named("extpose")
         assert len(extpose) == 1  # one pose, forwarded once
         assert extpose[0][2:] == ((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0))
     finally:
         radio.shutdown()
-    tx_thread = sim.firmware.threads[-1]
+    tx_thread = sim.firmware.notes[-1]
     assert tx_thread != caller  # the hand-back ran on the TX thread too
     assert sim.firmware.calls[-2:] == [("notify_stop", 0.0), ("hl_stop", 0.0)]
 
@@ -445,5 +410,5 @@ def test_threaded_heartbeat_and_extposes_fed_from_the_mocap_thread(sim_uri: tupl
         assert sim.firmware.named("extpose")[1][2:] == ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0, 0.0))
     finally:
         radio.shutdown()
-    heartbeat_threads = {tid for (name, *_), tid in zip(sim.firmware.calls, sim.firmware.threads) if name == "heartbeat"}
+    heartbeat_threads = {tid for (name, *_), tid in zip(sim.firmware.calls, sim.firmware.notes) if name == "heartbeat"}
     assert caller not in heartbeat_threads and len(heartbeat_threads) == 1  # the TX thread
