@@ -62,6 +62,7 @@ class ControllerConfig:
     terminal_scale: float
     max_tilt_deg: float
     min_thrust_fraction: float
+    max_thrust_fraction: float
     yaw_rate_gain: float
     max_yaw_rate_deg: float
     geometric_kp: Vec3
@@ -293,6 +294,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.dt", lambda v: v > 0, "> 0"),
     ("controller.max_tilt_deg", lambda v: 0 < v < 80, "in (0, 80)"),
     ("controller.min_thrust_fraction", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("controller.max_thrust_fraction", lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
     ("trajectory.radius", lambda v: v > 0, "> 0"),
     ("trajectory.speed", lambda v: v > 0, "> 0"),
     ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),

@@ -21,9 +21,10 @@ point after a stale warm start); a failed check is re-solved once, cold, by the 
 QP solver, and only then reported as ``ok=False``.
 
 Input bounds (a box on u, from the vehicle):
-- a_z <= 0.9 T_max / m - g: at most 90 % of the thrust at the RPYT clamp for vertical
-  acceleration; the rest is headroom the attitude loop needs to tilt and for the mixer's
-  excess capping (thrust/weight is only ~1.5 at the 60000 clamp).
+- a_z <= f T_max / m - g (f = ``max_thrust_fraction``, default 1): up to the thrust at the
+  RPYT clamp. The clamp (60000 of 65535) is the firmware's own headroom for the attitude loop,
+  and its mixer caps excess so that attitude wins over thrust (thrust/weight is only ~1.5 at
+  the clamp, so every bit of it counts after a payload is added).
 - a_z >= -(1 - min_thrust_fraction) g: never command (near) free fall; the motors would
   idle and the attitude loop would lose authority. The default keeps 20 % of hover thrust:
   a lighter vehicle than the model's (mass 0.5x, the paper's scenario) hovers only at a
@@ -118,9 +119,10 @@ class MpcSolution:
 def acceleration_bounds(ctrl: ControllerConfig, vehicle: VehicleConfig) -> AccelerationBounds:
     """The box on the commanded acceleration (see the module docstring for the reasoning)."""
     g = vehicle.gravity
-    az_max = 0.9 * vehicle.max_thrust / vehicle.mass - g
+    f = ctrl.max_thrust_fraction
+    az_max = f * vehicle.max_thrust / vehicle.mass - g
     if az_max <= 0.0:
-        raise ValueError(f"vehicle cannot hover with a 10% margin: 0.9 T_max/m - g = {az_max:.3f} m/s^2")
+        raise ValueError(f"vehicle cannot hover at controller.max_thrust_fraction {f:g}: f T_max/m - g = {az_max:.3f} m/s^2")
     axy = g * math.tan(math.radians(ctrl.max_tilt_deg))
     az_min = -(1.0 - ctrl.min_thrust_fraction) * g
     return AccelerationBounds(np.array([-axy, -axy, az_min]), np.array([axy, axy, az_max]))

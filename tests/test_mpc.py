@@ -108,6 +108,17 @@ def test_hover_reference_at_hover_gives_zero_acceleration(rti):
     np.testing.assert_allclose(sol.x_pred, np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (rti.horizon + 1, 1)), atol=1e-9)
 
 
+def test_the_vertical_thrust_margin_is_configurable(cfg):
+    import dataclasses
+
+    full = acceleration_bounds(cfg.controller, cfg.vehicle).upper[2]
+    margin = acceleration_bounds(dataclasses.replace(cfg.controller, max_thrust_fraction=0.9), cfg.vehicle).upper[2]
+    assert full - margin == pytest.approx(0.1 * cfg.vehicle.max_thrust / cfg.vehicle.mass)
+    heavy = dataclasses.replace(cfg.vehicle, mass=cfg.vehicle.max_thrust / cfg.vehicle.gravity * 1.2)
+    with pytest.raises(ValueError, match="cannot hover"):
+        acceleration_bounds(cfg.controller, heavy)
+
+
 def test_position_offset_accelerates_toward_reference(rti):
     offset = np.array([0.2, -0.1, -0.3])
     x0 = np.concatenate(([0.0, 0.0, 1.0] + offset, np.zeros(3)))
@@ -122,7 +133,7 @@ def test_bounds_respected_under_large_error(rti, cfg):
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     g = cfg.vehicle.gravity
     assert bounds.lower[2] == pytest.approx(-(1 - cfg.controller.min_thrust_fraction) * g)
-    assert bounds.upper[2] == pytest.approx(0.9 * cfg.vehicle.max_thrust / cfg.vehicle.mass - g)
+    assert bounds.upper[2] == pytest.approx(cfg.controller.max_thrust_fraction * cfg.vehicle.max_thrust / cfg.vehicle.mass - g)
     assert bounds.upper[0] == pytest.approx(g * np.tan(np.radians(cfg.controller.max_tilt_deg)))
     ref = _hover_ref(rti.horizon)
     for x0 in (np.array([5.0, -5.0, -3.0, 0.0, 0.0, 0.0]), np.array([-5.0, 5.0, 6.0, 2.0, -2.0, 3.0])):
