@@ -462,14 +462,18 @@ class OnlineLearner:
         record = self.slot.swap(prev.model, prev.version, t)
         self._flying = prev
         self._model_changed()
-        self._held = None  # anything trained on the rolled-back model is stale
-        if self._gating is not None:
-            g, self._gating = self._gating, None
-            self._reject(t, g.held, f"stale: its base {g.held.outcome.base_version} was rolled back", None)
+        self._discard_pending_candidates(t, "rolled back")
         self.stats.rollbacks += 1
         self.swaps.append(SwapEvent(t, prev.version, record.swap_s, record.swap_s, record.swap_s, "rollback"))
         reason = f"{w.fallbacks} MPC fallbacks in the {self.s.rollback_ticks - w.ticks_left} ticks after swapping in {w.version}"
         self._log_model(t, prev.version, "rollback", reason, swap_s=record.swap_s)
+
+    def _discard_pending_candidates(self, t: float, what: str) -> None:
+        """A result waiting for the gate, or in it, was trained on the model just replaced: reject it as stale."""
+        for held in (self._held, self._gating.held if self._gating is not None else None):
+            if held is not None:
+                self._reject(t, held, f"stale: its base {held.outcome.base_version} was {what}", None)
+        self._held = self._gating = None
 
     # --- model monitor -----------------------------------------------------------------------
 
@@ -492,10 +496,7 @@ class OnlineLearner:
         self._flying = _Flying(None, version, None, ())
         self._model_changed()
         self._watch = None
-        self._held = None  # trained on the dropped model's data: stale
-        if self._gating is not None:
-            g, self._gating = self._gating, None
-            self._reject(t, g.held, f"stale: its base {g.held.outcome.base_version} was dropped", None)
+        self._discard_pending_candidates(t, "dropped")
         self.stats.drops += 1
         self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, "drop"))
         reason = (f"model {dropped} predicts the last {verdict.ticks} ticks worse than nominal "

@@ -180,6 +180,17 @@ def test_a_model_the_world_changed_under_is_dropped_for_nominal() -> None:
     assert slot.version == first_after.version  # and learning goes on from nominal
 
 
+def test_a_candidate_trained_on_a_dropped_model_is_rejected_as_stale() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.run(1.14)  # model 1 flies; the next window closes at 1.14 s and its result waits for fresh data
+    flight.r = np.array([0.0, 0.0, 0.5])
+    flight.run(0.15)
+    assert learner.stats.drops == 1 and slot.model is None
+    stale = [r for r in learner.rounds if r.outcome == "reject"]
+    assert [r.reason for r in stale] == ["stale: its base 1 was dropped"]
+    assert learner.summary_fields()["models_undecided"] == 0  # every trained model was decided
+
+
 def test_the_monitor_can_be_turned_off() -> None:
     flight, learner, _, _, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req), monitor=False)
     flight.run(0.8)
