@@ -96,7 +96,7 @@ class ModelMonitor:
         if model is None:
             return MonitorVerdict(False, nominal, nominal, self._n)
         err = float(np.linalg.norm(mean_acceleration_error(model, t, v, u)))
-        drop = math.isfinite(err) is False or err > self.s.margin * nominal + self.s.floor
+        drop = not math.isfinite(err) or err > self.s.margin * nominal + self.s.floor
         return MonitorVerdict(drop, err, nominal, self._n)
 
 
