@@ -14,8 +14,11 @@ from typing import Any, Callable
 import numpy as np
 
 from cfknode.config import Config, load_config
-from cfknode.flight.model_slot import ModelSlot, linearisation_points
-from cfknode.flight.mpc import TranslationalMpc, circle_samples
+from cfknode.flight.controller import Controller
+from cfknode.flight.estimator import StateEstimate
+from cfknode.flight.model_slot import ModelSlot
+from cfknode.flight.mpc import TranslationalMpc
+from cfknode.flight.trajectory import circle_samples
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.quadrotor import rk4_step
 from cfknode.models.residual_np import ResidualQueue
@@ -51,17 +54,19 @@ def synthetic_queue(hidden: tuple[int, ...], n_networks: int, seed: int = 0) -> 
 
 
 def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, seconds: float) -> tuple[Timing, Timing]:
-    """Solve time, and linearise + solve time, of the MPC in a 400 Hz closed loop on a circle.
+    """Solve time, and the whole control step's time (linearise + solve + Mellinger layer), of the
+    controller in a 400 Hz closed loop on a circle.
 
     The plant is the double integrator plus the same residual the MPC is given, so the loop
     tracks and the solver works on realistic warm starts.
     """
     ctrl = cfg.controller
-    n, tc = ctrl.horizon, 1.0 / ctrl.rate_hz
-    offsets = ctrl.dt * np.arange(n + 1)
+    tc = 1.0 / ctrl.rate_hz
+    controller = Controller(ctrl, cfg.vehicle, model=slot, solver=mpc)
     start_ref = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
     # Start on the reference: the bench times tracking, not the recovery from a 0.4 m/s step.
     x = np.concatenate((start_ref.p[0], start_ref.v[0]))
+    level = np.array([1.0, 0.0, 0.0, 0.0])
     queue = slot.model if slot is not None else None
 
     def plant(xs: np.ndarray, us: np.ndarray) -> np.ndarray:
@@ -70,18 +75,16 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
 
     ticks = int(round(seconds / tc))
     solve, total = np.empty(ticks), np.empty(ticks)
-    x_pred = u_pred = None
     for i in range(ticks):
-        ref = circle_samples(i * tc + offsets, 0.5, 0.4, 1.0)
+        t = i * tc
+        ref = circle_samples(controller.preview_times(t), 0.5, 0.4, 1.0)
         start = time.perf_counter()
-        residual = slot.residual(*linearisation_points(x, ref.a, x_pred, u_pred)) if slot is not None else None
-        sol = mpc.solve(x, ref, residual)
+        command = controller.step(t, StateEstimate(t, x[:3], x[3:], level, 0.0), ref)
         total[i] = time.perf_counter() - start
-        solve[i] = sol.solve_time
-        x_pred, u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
-        x = rk4_step(plant, x, sol.acc, tc)
+        solve[i] = command.solve_s
+        x = rk4_step(plant, x, command.acc, tc)
     label = f"{mpc.backend}{' + KNODE x' + str(queue.n_networks) if queue is not None else ''}"
-    return Timing.of(f"MPC solve, {label}", solve), Timing.of(f"linearise + solve, {label}", total)
+    return Timing.of(f"MPC solve, {label}", solve), Timing.of(f"control step, {label}", total)
 
 
 def swap_latency(cfg: Config, repeats: int = 2000) -> Timing:
@@ -122,7 +125,6 @@ def lockstep_flight(cfg: Config, model: ResidualQueue | None, seconds: float) ->
     """A short lockstep circle through the whole stack: tick compute and the speed factor."""
     import tempfile
 
-    from cfknode.flight.loop import FlightParts, fly  # noqa: F401  (documented dependency)
     from cfknode.mission import run_flight
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -196,8 +198,8 @@ def run_timing_bench(quick: bool = False, progress: Callable[[str], None] = lamb
 def _ratios(rows: dict[str, Timing]) -> dict[str, float]:
     """Speed-ups between rows of this run (median over median)."""
     out = {}
-    rti = next((r for n, r in rows.items() if n.startswith("linearise + solve, rti-qrqp-codegen + KNODE")), None)
-    ipopt = next((r for n, r in rows.items() if n.startswith("linearise + solve, ipopt + KNODE")), None)
+    rti = next((r for n, r in rows.items() if n.startswith("control step, rti-qrqp-codegen + KNODE")), None)
+    ipopt = next((r for n, r in rows.items() if n.startswith("control step, ipopt + KNODE")), None)
     rti_nom = next((r for n, r in rows.items() if n == "MPC solve, rti-qrqp-codegen"), None)
     ipopt_nom = next((r for n, r in rows.items() if n == "MPC solve, ipopt"), None)
     if rti and ipopt:

@@ -17,129 +17,19 @@ from typing import Any, Literal, Mapping
 
 import yaml
 
-Vec3 = tuple[float, float, float]
+from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
+from cfknode.kernel.errors import ConfigError
+from cfknode.kernel.vehicle import Vec3, VehicleConfig
+from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
+from cfknode.safety.settings import SafetyConfig
+from cfknode.sim_backend.settings import FaultsConfig, FaultWindow, Gust, MassChange, SimConfig
 
-
-class ConfigError(ValueError):
-    """A configuration problem, with a one-line message naming the key or file."""
-
-
-@dataclass(frozen=True)
-class VehicleConfig:
-    mass: float
-    inertia: Vec3
-    arm_length: float
-    thrust_max_per_motor: float
-    thrust_cmd_clamp: int
-    thrust_to_torque: float
-    motor_time_constant: float
-    gravity: float
-
-    @property
-    def newton_per_cmd(self) -> float:
-        """Collective force per unit of thrust command (all four motors)."""
-        return 4.0 * self.thrust_max_per_motor / 65535.0
-
-    @property
-    def max_thrust(self) -> float:
-        """Collective force at the RPYT clamp, N."""
-        return self.thrust_cmd_clamp * self.newton_per_cmd
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    kind: Literal["mpc", "knode-mpc", "geometric"]
-    model: str
-    rate_hz: float
-    horizon: int
-    dt: float
-    solver: Literal["rti", "ipopt"]
-    qp_solver: Literal["qrqp", "osqp"]
-    codegen: bool
-    q_position: Vec3
-    q_velocity: Vec3
-    r_acceleration: Vec3
-    terminal_scale: float
-    max_tilt_deg: float
-    min_thrust_fraction: float
-    max_thrust_fraction: float
-    yaw_rate_gain: float
-    max_yaw_rate_deg: float
-    geometric_kp: Vec3
-    geometric_kd: Vec3
-
-
-@dataclass(frozen=True)
-class EstimatorConfig:
-    process_accel_std: float
-    position_std: float
-    latency: float
-
-
-@dataclass(frozen=True)
-class TrajectoryConfig:
-    kind: Literal["hover", "circle", "figure8"]
-    radius: float
-    speed: float
-    center: tuple[float, float]
-    height: float
-    duration: float
-    takeoff_duration: float
-    settle_duration: float
-    land_duration: float
-    ramp_duration: float
-
-
-@dataclass(frozen=True)
-class MassChange:
-    t: float
-    factor: float
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    seed: int
-    dt: float
-    realtime: bool
-    initial_position: Vec3
-    battery_voltage: float
-    mocap_rate_hz: float
-    mocap_position_noise: float
-    mocap_attitude_noise: float
-    mocap_latency: float
-    mocap_dropout_prob: float
-    mass_changes: tuple[MassChange, ...]
-    wind: Vec3
-    drag: Vec3
-
-
-@dataclass(frozen=True)
-class KnodeConfig:
-    hidden: tuple[int, ...]
-    activation: Literal["tanh", "softplus", "relu"]
-    queue_size: int
-    max_residual: float
-
-
-@dataclass(frozen=True)
-class TrainingConfig:
-    epochs: int
-    lr: float
-    weight_decay: float
-    method: Literal["rk4", "euler", "dopri5"]
-    adjoint: bool
-    seed: int
-    velocity_filter_hz: float
-    validation_fraction: float
-
-
-@dataclass(frozen=True)
-class FaultInjection:
-    """Test hooks for online learning: the trainer fails at this round (0 = never)."""
-
-    crash_at_round: int
-    hang_at_round: int
-    nan_at_round: int
+__all__ = [
+    "Config", "ConfigError", "ControllerConfig", "DashboardConfig", "EstimatorConfig", "FaultInjection", "FaultWindow",
+    "FaultsConfig", "Gust", "HardwareConfig", "KnodeConfig", "LogConfig", "MassChange", "OnlineConfig", "RadioConfig",
+    "SafetyConfig", "SimConfig", "TrainingConfig", "TrajectoryConfig", "Vec3", "VehicleConfig", "build_config",
+    "default_dict", "load_config", "parse_override", "read_yaml_mapping",
+]
 
 
 @dataclass(frozen=True)
@@ -186,60 +76,6 @@ class LogConfig:
 class DashboardConfig:
     enabled: bool
     refresh_hz: float
-
-
-@dataclass(frozen=True)
-class SafetyConfig:
-    enabled: bool
-    estop_dir: str
-    fence_min: Vec3
-    fence_max: Vec3
-    fence_margin: float
-    fence_stop_distance: float
-    mocap_hold_s: float
-    mocap_stop_s: float
-    hold_thrust_factor: float
-    link_silence_s: float
-    link_max_latency_s: float
-    overrun_ticks: int
-    solve_deadline_s: float
-    battery_takeoff_min_v: float
-    battery_land_v: float
-    battery_filter_s: float
-    max_tilt_deg: float
-    tumble_s: float
-    max_tracking_error: float
-    tracking_error_s: float
-    max_fallback_s: float
-    land_speed: float
-    touchdown_height: float
-    preflight_timeout_s: float
-    start_tolerance: float
-
-
-@dataclass(frozen=True)
-class FaultWindow:
-    t: float
-    duration: float
-
-
-@dataclass(frozen=True)
-class Gust:
-    t: float
-    duration: float
-    wind: Vec3
-
-
-@dataclass(frozen=True)
-class FaultsConfig:
-    mocap_outages: tuple[FaultWindow, ...]
-    radio_outages: tuple[FaultWindow, ...]
-    solver_failures: tuple[FaultWindow, ...]
-    nan_model_at: float
-    battery_drop_at: float
-    battery_drop_to: float
-    gusts: tuple[Gust, ...]
-    sigint_at: tuple[float, ...]
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from cfknode.config import Config, ConfigError
-from cfknode.flight.clock import WallClock
+from cfknode.kernel.clock import WallClock
 from cfknode.flight.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
 from cfknode.mocap.motioncapture_source import (
     Connector,
@@ -297,7 +297,7 @@ def simulated_hardware(cfg: Config, robot: Robot) -> Iterator[SimulatedHardware]
         raise ConfigError(f"robot {robot.name!r} has URI {robot.uri!r}, not a sim:// URI")
     sim_cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, initial_position=robot.initial_position,
                                                                realtime=True))
-    sim = SimCrazyflie(sim_cfg)
+    sim = SimCrazyflie(sim_cfg.vehicle, sim_cfg.sim)
     register_simulator(robot.uri, sim)
     clock = WallClock()
     stepper = RealtimeStepper(sim, clock.now).start()

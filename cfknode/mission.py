@@ -17,7 +17,8 @@ import numpy as np
 
 from cfknode import __version__
 from cfknode.config import Config, ConfigError
-from cfknode.flight.clock import SimClock, WallClock
+from cfknode.kernel.clock import SimClock, WallClock
+from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog
 from cfknode.flight.mpc_codegen import default_cache_dir
@@ -43,6 +44,16 @@ class FlightResult:
     record: FlightRecord
     outcome: Outcome  # how the flight ended; ``outcome.message`` is the line the user sees
     learner: Any = None  # the online learner (flight.online.OnlineLearner) when online learning ran
+
+
+def build_supervisor(
+    cfg: Config, radio: Any, *, trajectory: Any, log: Any, deadlines_apply: bool,
+    inputs: SupervisorInputs = SupervisorInputs(),
+) -> Supervisor:
+    """The safety supervisor for ``cfg``'s flight (the robot's name in messages on hardware)."""
+    return Supervisor(cfg.safety, radio, trajectory=trajectory, vehicle=cfg.vehicle, log=log,
+                      rate_hz=cfg.controller.rate_hz, deadlines_apply=deadlines_apply, inputs=inputs,
+                      robot=cfg.hardware.robot if cfg.backend == "cf" else "")
 
 
 def build_controller(cfg: Config) -> TranslationalMpc | None:
@@ -109,7 +120,7 @@ def run_flight(
             raise ConfigError(f"config key 'radio.uri' must be a sim:// URI with backend sim, got {cfg.radio.uri!r}")
         from cfknode.sim_backend.faults import check_faults
 
-        check_faults(cfg)
+        check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
         flight_cfg, session = cfg, _sim_session(cfg)
     else:
         from cfknode.hardware import HARDWARE_ERRORS, flight_config, robot_for
@@ -152,7 +163,7 @@ def _fly_session(
         log: Any = flight_log if status is None else StatusTap(flight_log, status)
         for event in sess.events:
             log.write("/events", 0.0, event)
-        supervisor = Supervisor.from_config(
+        supervisor = build_supervisor(
             cfg,
             sess.radio,
             trajectory=trajectory,
@@ -160,22 +171,25 @@ def _fly_session(
             deadlines_apply=not sess.clock.lockstep,
             inputs=SupervisorInputs(battery_voltage=sess.battery_voltage, link_status=sess.link_status),
         )
-        with online_session(cfg, model, log, sess.clock, trainer) as online:
+        ground_z = float(sess.start_position[2])
+        with online_session(cfg, model, log, sess.clock, trainer, ground_z=ground_z) as online:
+            # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
+            deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
+            controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_controller(mpc),
+                                    deadline_s=deadline)
+            if online is not None:
+                controller.observers.append(online)
             parts = FlightParts(
                 clock=sess.clock,
                 mocap=sess.mocap,
                 estimator=VelocityEstimator(cfg.estimator),
                 trajectory=trajectory,
-                mpc=sess.wrap_controller(mpc),
+                controller=controller,
                 supervisor=supervisor,
                 log=log,
-                vehicle=cfg.vehicle,
-                controller=cfg.controller,
                 truth=sess.truth,
-                model=model,
                 observers=[
                     *observers,
-                    *([online] if online is not None else []),
                     *([status] if status is not None else []),
                     *sess.fault_observers(model),
                 ],
@@ -279,8 +293,8 @@ def _sim_session(cfg: Config) -> Iterator[Session]:
     from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
     from cfknode.sim_backend.realtime import RealtimeStepper
 
-    sim = SimCrazyflie(cfg)
-    faults = install_faults(sim, cfg)
+    sim = SimCrazyflie(cfg.vehicle, cfg.sim)
+    faults = install_faults(sim, cfg.faults)
     mocap = SimulatedMocap.from_config(sim, cfg.sim, outages=faults.mocap_outages)
     register_simulator(cfg.radio.uri, sim)
     clock: WallClock | SimClock = WallClock() if cfg.sim.realtime else SimClock(sim)

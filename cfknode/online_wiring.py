@@ -6,7 +6,9 @@ Mission wiring (``run_flight``) uses it in three lines::
     with start_trainer(cfg) as trainer:                        # pre-flight, before the clock starts
         ...                                                    # (backend, log, clock as today)
         with online_session(cfg, model, log, clock, trainer) as online:
-            parts = FlightParts(..., model=model, observers=[online] if online else [])
+            controller = Controller(cfg.controller, cfg.vehicle, model=model)
+            controller.observers.extend([online] if online else [])
+            parts = FlightParts(..., controller=controller)
             record = asyncio.run(fly(parts))
             extra.update(online.summary_fields() if online else {})
 
@@ -60,7 +62,7 @@ def trainer_settings(cfg: Config) -> TrainerSettings:
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
 
 
-def learner_settings(cfg: Config, lockstep: bool) -> LearnerSettings:
+def learner_settings(cfg: Config, lockstep: bool, ground_z: float | None = None) -> LearnerSettings:
     o = cfg.online
     return LearnerSettings(
         t_col=o.t_col,
@@ -80,6 +82,7 @@ def learner_settings(cfg: Config, lockstep: bool) -> LearnerSettings:
         queue_size=cfg.knode.queue_size,
         monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
         if o.monitor else None,
+        ground_z=ground_z,
     )
 
 
@@ -112,7 +115,8 @@ def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | No
 
 @contextlib.contextmanager
 def online_session(
-    cfg: Config, slot: ModelSlot | None, log: Any, clock: Any, trainer: TrainerClient | None = None
+    cfg: Config, slot: ModelSlot | None, log: Any, clock: Any, trainer: TrainerClient | None = None,
+    ground_z: float | None = None,
 ) -> Iterator[OnlineLearner | None]:
     """The loop observer that learns in flight (None when online learning is off).
 
@@ -137,7 +141,7 @@ def online_session(
     with contextlib.ExitStack() as stack:
         if trainer is None:
             trainer = stack.enter_context(start_trainer(cfg, wait=bool(clock.lockstep)))
-        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep)), slot, trainer, log, base)
+        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep), ground_z), slot, trainer, log, base)
         yield learner
 
 

@@ -54,10 +54,19 @@ class ReplayError(ValueError):
     """A replay that cannot run (no states in the log, an unusable model); one line."""
 
 
+@dataclass(frozen=True)
+class _LoggedState:
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+
+
 class ResidualModel(Protocol):
     """What replay needs from a KNODE queue (``cfknode.models.residual_np.ResidualQueue``)."""
 
     def linearise(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def evaluate(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -130,10 +139,8 @@ def replay_log(
     log: LogData, cfg: Config, model: ResidualModel | None = None, model_name: str | None = None
 ) -> ReplayResult:
     """Run ``cfg``'s controller on every controller tick of ``log``; see the module docstring."""
-    from cfknode.flight.geometric import GeometricGains, geometric_acc
-    from cfknode.flight.mellinger import acc_to_setpoint
-    from cfknode.flight.model_slot import linearisation_points
-    from cfknode.flight.mpc import ResidualLinearisation, TranslationalMpc
+    from cfknode.flight.controller import Controller
+    from cfknode.flight.model_slot import ModelSlot
     from cfknode.flight.trajectory import make_trajectory
 
     states = {m["t"]: m for m in log.topic("/state")}
@@ -141,13 +148,12 @@ def replay_log(
     commands = log.topic("/command")
     if not states or not commands:
         raise ReplayError(f"{log.path.name}: no /state or /command messages to replay")
-    ctrl, vehicle = cfg.controller, cfg.vehicle
-    mpc = TranslationalMpc(ctrl, vehicle) if ctrl.kind == "mpc" else None
-    if model is not None and mpc is None:
+    ctrl = cfg.controller
+    if model is not None and ctrl.kind == "geometric":
         raise ReplayError("--model needs the MPC controller (controller.kind mpc), the log flew geometric")
-    gains = GeometricGains.from_config(ctrl, vehicle)
+    slot = ModelSlot(model, version=1) if model is not None else None
+    controller = Controller(ctrl, cfg.vehicle, model=slot)
     trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
-    offsets = ctrl.dt * np.arange(ctrl.horizon + 1)
 
     rows_t: list[float] = []
     logged: list[list[float]] = []
@@ -156,8 +162,6 @@ def replay_log(
     replayed_src: list[str] = []
     skipped: dict[str, int] = {}
     mismatch = 0.0
-    prev_x: np.ndarray | None = None  # the previous solution: RTI linearisation points, as in the loop
-    prev_u: np.ndarray | None = None
     followed = 0
     for cmd in commands:
         t, source = cmd["t"], cmd.get("source", "")
@@ -165,35 +169,23 @@ def replay_log(
         if source not in CONTROLLER_SOURCES or state is None:
             skipped[source or "unknown"] = skipped.get(source or "unknown", 0) + 1
             continue
-        p, v = np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float)
-        q = np.asarray(state["q"], dtype=float)
-        ref = trajectory.sample(t + offsets)
+        est = _LoggedState(np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float),
+                           np.asarray(state["q"], dtype=float))
+        ref = trajectory.sample(controller.preview_times(t))
         if t in refs:
             mismatch = max(mismatch, float(np.max(np.abs(ref.p[0] - np.asarray(refs[t]["p"], dtype=float)))))
-        if mpc is not None:
-            x0 = np.concatenate((p, v))
-            residual = None
-            if model is not None:
-                residual = ResidualLinearisation(*model.linearise(*linearisation_points(x0, ref.a, prev_x, prev_u)))
-            sol = mpc.solve(x0, ref, residual)
-            prev_x, prev_u = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
-            # A tick that fell back in flight while the replayed solve succeeds missed its
-            # deadline on the wall clock: it is flown as the flight flew it (geometric).
-            if sol.ok and source != "fallback":
-                acc, how = sol.acc, "mpc"
-            else:
-                acc, how = geometric_acc(p, v, ref.p[0], ref.v[0], ref.a[0], gains), "fallback"
-                followed += sol.ok
-        else:
-            acc, how = geometric_acc(p, v, ref.p[0], ref.v[0], ref.a[0], gains), "geometric"
-        sp = acc_to_setpoint(acc, float(ref.yaw[0]), q, vehicle, ctrl)
+        # A tick that fell back in flight while the replayed solve succeeds missed its deadline
+        # on the wall clock: it is flown as the flight flew it (geometric).
+        command = controller.step(t, est, ref, force_fallback=source == "fallback")
+        followed += source == "fallback" and command.status == "deadline"
+        acc, sp = command.acc, command.setpoint
         rows_t.append(t)
         logged.append([*_vector3(cmd.get("acc")), *(_float(cmd.get(k)) for k in
                                                     ("roll_deg", "pitch_deg", "yawrate_deg", "thrust"))])
         replayed.append([float(acc[0]), float(acc[1]), float(acc[2]), sp.roll_deg, sp.pitch_deg, sp.yawrate_deg,
                          float(sp.thrust)])
         logged_src.append(source)
-        replayed_src.append(how)
+        replayed_src.append(command.source)
     if not rows_t:
         raise ReplayError(f"{log.path.name}: no tick has both a state and a controller command")
     notes = []
@@ -202,11 +194,11 @@ def replay_log(
     if mismatch > 1e-6:
         notes.append(f"the reference rebuilt from the config differs from the logged one by up to {mismatch:.3g} m "
                      "(clamped in flight, or another start pose): commands will differ")
-    controller = f"{ctrl.kind} {mpc.backend}" if mpc is not None else ctrl.kind
+    label = f"{ctrl.kind} {controller.backend}" if controller.solver is not None else ctrl.kind
     return ReplayResult(
         t=np.asarray(rows_t), logged=np.asarray(logged, dtype=float), replayed=np.asarray(replayed, dtype=float),
         logged_source=tuple(logged_src), replayed_source=tuple(replayed_src), skipped=skipped,
-        reference_mismatch_m=mismatch, controller=controller, model=model_name, notes=tuple(notes),
+        reference_mismatch_m=mismatch, controller=label, model=model_name, notes=tuple(notes),
     )
 
 

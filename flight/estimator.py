@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cfknode.config import EstimatorConfig
+from cfknode.flight.settings import EstimatorConfig
 from cfknode.mocap.source import Pose
 
 # Velocity uncertainty at the first frame (m/s): the vehicle is on the ground or

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cfknode.config import ControllerConfig, VehicleConfig
+from cfknode.flight.settings import ControllerConfig
+from cfknode.kernel.vehicle import VehicleConfig
 
 
 @dataclass(frozen=True)

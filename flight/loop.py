@@ -17,46 +17,20 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from cfknode.config import ControllerConfig, VehicleConfig
-from cfknode.flight.clock import Clock
+from cfknode.flight.controller import Controller, TickInfo, TickObserver
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
-from cfknode.flight.geometric import GeometricGains, geometric_acc
-from cfknode.flight.mellinger import AttitudeSetpoint, acc_to_setpoint
-from cfknode.flight.model_slot import ModelSlot, linearisation_points
-from cfknode.flight.trajectory import Trajectory
+from cfknode.kernel.clock import Clock
+from cfknode.kernel.reference import Reference
+from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.mocap.source import PoseSource
 from cfknode.safety.operator import EstopMailbox, estop_watch, sigint_handler
 from cfknode.safety.supervisor import BLIND, FLY, MOTORS_OFF, Supervisor
 
-
-class Controller(Protocol):
-    def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any: ...
+__all__ = ["FlightParts", "FlightRecord", "Log", "TickInfo", "TickObserver", "fly"]
 
 
 class Log(Protocol):
     def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
-
-
-@dataclass(frozen=True)
-class TickInfo:
-    """What one tick saw and decided, for observers (training recorder, dashboard status)."""
-
-    t: float
-    est: StateEstimate | None
-    ref_p: np.ndarray
-    ref_v: np.ndarray
-    acc: np.ndarray  # commanded world acceleration (the model's input u)
-    setpoint: AttitudeSetpoint
-    source: str  # "mpc" | "fallback" | "geometric" | "blind" | "cutoff" | "stop" | "no_state" | "refused"
-    compute_s: float
-    solve_s: float
-    missed: bool
-    model_version: int
-    supervisor_state: str = ""  # the safety supervisor's state after this tick (State.value)
-
-
-class TickObserver(Protocol):
-    def on_tick(self, tick: TickInfo) -> None: ...
 
 
 @dataclass
@@ -64,14 +38,11 @@ class FlightParts:
     clock: Clock
     mocap: PoseSource
     estimator: VelocityEstimator
-    trajectory: Trajectory
-    mpc: Controller | None  # None flies the geometric controller alone
+    trajectory: Reference
+    controller: Controller  # the control law: MPC (with its model slot) or geometric, and the Mellinger layer
     supervisor: Supervisor  # owns the radio: the loop's only way to the drone
     log: Log
-    vehicle: VehicleConfig
-    controller: ControllerConfig
     truth: Callable[[], np.ndarray] | None = None  # simulator's true 13-state, for logs and MSE
-    model: ModelSlot | None = None  # KNODE residual for the MPC; None flies the nominal model
     observers: list[TickObserver] = field(default_factory=list)
     estop: EstopMailbox | None = None  # where `cfknode estop` reaches this flight
 
@@ -133,15 +104,10 @@ async def fly(parts: FlightParts) -> FlightRecord:
     Ctrl-C (SIGINT) goes to the supervisor while the flight runs: the first lands, the second
     stops the motors. The e-stop mailbox is open for ``cfknode estop`` for the same span.
     """
-    ctrl, traj, sup = parts.controller, parts.trajectory, parts.supervisor
-    period = 1.0 / ctrl.rate_hz
-    horizon_offsets = ctrl.dt * np.arange(ctrl.horizon + 1)
+    controller, traj, sup = parts.controller, parts.trajectory, parts.supervisor
+    period = 1.0 / controller.settings.rate_hz
     rec = FlightRecord.empty(int(np.ceil((traj.duration + 0.5) / period)) + 1)
-    gains = GeometricGains.from_config(ctrl, parts.vehicle)
-    # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
-    deadline = sup.config.solve_deadline_s if sup.deadlines_apply else None
     acc_prev = np.zeros(3)
-    prev: _Previous = _Previous()
     last_pose_t = -np.inf
     wall_start = time.perf_counter()
     k = 0
@@ -160,19 +126,19 @@ async def fly(parts: FlightParts) -> FlightRecord:
                     parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                                     "stamp": pose.t})
             est = parts.estimator.predict(now, acc_prev)
-            action, ref, source = sup.plan(now, est, traj.sample(now + horizon_offsets))
+            action, ref, source = sup.plan(now, est, traj.sample(controller.preview_times(now)))
 
             solve_s, ok, status = 0.0, False, ""
             if action is FLY:
-                acc, ok, solve_s, source, status = _control(parts, est, ref, gains, prev, deadline)
+                command = controller.step(now, est, ref)
+                ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
                 if source == "fallback":
                     rec.fallbacks += 1
                     rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
-                acc_prev = acc
-                sp = acc_to_setpoint(acc, float(ref.yaw[0]), est.q, parts.vehicle, ctrl)
+                acc_prev, sp = command.acc, command.setpoint
             elif action is BLIND:
                 sp, acc_prev = sup.blind_setpoint, sup.blind_acc
-                prev.x_pred = prev.u_pred = None  # the last solution is stale once flying blind
+                controller.reset()  # the last solution is stale once flying blind
             else:
                 sp = MOTORS_OFF
                 if source == "no_state":
@@ -191,8 +157,11 @@ async def fly(parts: FlightParts) -> FlightRecord:
             rec.ticks += 1
             _log_tick(parts.log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
                       status if source == "fallback" else "")
+            model = controller.model
+            version = model.version if model is not None else 0  # the model this tick flew, before any swap
+            if action is FLY:
+                controller.publish(compute_s=compute, missed=missed, supervisor_state=sup.state.value)
             if parts.observers:
-                version = parts.model.version if parts.model is not None else 0
                 info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version,
                                 sup.state.value)
                 for observer in parts.observers:
@@ -205,38 +174,6 @@ async def fly(parts: FlightParts) -> FlightRecord:
     rec.wall_time = time.perf_counter() - wall_start
     rec.events = list(sup.events)
     return rec.trimmed()
-
-
-@dataclass
-class _Previous:
-    """The last MPC solution: the RTI linearisation points for this tick's residual."""
-
-    x_pred: np.ndarray | None = None
-    u_pred: np.ndarray | None = None
-
-
-def _control(
-    parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains, prev: _Previous,
-    deadline: float | None = None,
-) -> tuple[np.ndarray, bool, float, str, str]:
-    """Acceleration command for this tick: the MPC, or the geometric controller when the MPC
-    fails or (``deadline``, s) answers too late. Returns (acc, ok, solve time, source, status)."""
-    solve_s = 0.0
-    if parts.mpc is not None:
-        x0 = np.concatenate((est.p, est.v))
-        residual = None
-        if parts.model is not None:
-            residual = parts.model.residual(*linearisation_points(x0, ref.a, prev.x_pred, prev.u_pred))
-        sol = parts.mpc.solve(x0, ref, residual)
-        prev.x_pred, prev.u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
-        solve_s = sol.solve_time
-        if sol.ok and (deadline is None or sol.solve_time <= deadline):
-            return sol.acc, True, solve_s, "mpc", "ok"
-        fallback_source, status = "fallback", sol.status if not sol.ok else "deadline"
-    else:
-        fallback_source, status = "geometric", "ok"
-    acc = geometric_acc(est.p, est.v, ref.p[0], ref.v[0], ref.a[0], gains)
-    return acc, parts.mpc is None, solve_s, fallback_source, status
 
 
 def _log_tick(

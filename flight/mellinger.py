@@ -12,26 +12,11 @@ Runs at 400 Hz on 3-vectors, so it is plain ``math`` on floats (numpy costs more
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Sequence
 
-from cfknode.config import ControllerConfig, VehicleConfig
-
-
-@dataclass(frozen=True)
-class AttitudeSetpoint:
-    """Arguments of cflib ``send_setpoint(roll, pitch, yawrate, thrust)``."""
-
-    roll_deg: float
-    pitch_deg: float
-    yawrate_deg: float
-    thrust: int
-
-
-def thrust_command(force: float, vehicle: VehicleConfig) -> int:
-    """Collective force [N] -> RPYT thrust command, rounded and clamped to [0, thrust_cmd_clamp]."""
-    cmd = round(force / vehicle.newton_per_cmd)
-    return min(max(cmd, 0), vehicle.thrust_cmd_clamp)
+from cfknode.flight.settings import ControllerConfig
+from cfknode.kernel.setpoint import AttitudeSetpoint, thrust_command
+from cfknode.kernel.vehicle import VehicleConfig
 
 
 def wrap_angle(angle: float) -> float:

@@ -46,7 +46,8 @@ from typing import Any, Protocol
 import casadi as ca
 import numpy as np
 
-from cfknode.config import ControllerConfig, VehicleConfig
+from cfknode.flight.settings import ControllerConfig
+from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.flight.mpc_codegen import CompiledFunction, casadi_link_flags, compile_cached
 from cfknode.models.quadrotor import casadi_backend, rk4_step, translational_rhs
 
@@ -316,16 +317,10 @@ class TranslationalMpc:
 
     def __init__(
         self,
-        ctrl: ControllerConfig | None = None,
-        vehicle: VehicleConfig | None = None,
+        ctrl: ControllerConfig,
+        vehicle: VehicleConfig,
         cache_dir: str | Path | None = None,
     ) -> None:
-        if ctrl is None or vehicle is None:
-            from cfknode.config import load_config
-
-            cfg = load_config()
-            ctrl = ctrl or cfg.controller
-            vehicle = vehicle or cfg.vehicle
         self.ctrl = ctrl
         self.vehicle = vehicle
         self.horizon = ctrl.horizon
@@ -484,90 +479,3 @@ def _try_compile(function: Any, qp_solver: str, cache_dir: str | Path | None) ->
             warnings.warn(f"MPC code generation failed, using the CasADi VM: {exc}", RuntimeWarning, stacklevel=3)
             _warned_compile = True
         return None
-
-
-@dataclass(frozen=True)
-class ReferenceArrays:
-    """The smallest ``RefLike``: node arrays (n, 3)."""
-
-    p: np.ndarray
-    v: np.ndarray
-    a: np.ndarray
-
-
-def circle_samples(t: np.ndarray, radius: float, speed: float, height: float) -> ReferenceArrays:
-    """A horizontal circle about the origin at ``height``, sampled at times ``t`` (benchmarks, tests)."""
-    w = speed / radius
-    c, s = np.cos(w * t), np.sin(w * t)
-    z = np.zeros_like(t)
-    p = np.stack((radius * c, radius * s, z + height), axis=-1)
-    v = np.stack((-speed * s, speed * c, z), axis=-1)
-    a = np.stack((-speed * w * c, -speed * w * s, z), axis=-1)
-    return ReferenceArrays(p, v, a)
-
-
-@dataclass(frozen=True)
-class MpcBenchmark:
-    backend: str
-    ticks: int
-    median_ms: float
-    p99_ms: float
-    max_ms: float
-    failures: int
-    rescues: int  # solves re-solved after a failed KKT check
-    rms_error: float  # m, closed-loop position error over the second half
-
-
-def benchmark_mpc(
-    ctrl: ControllerConfig,
-    vehicle: VehicleConfig,
-    seconds: float = 4.0,
-    with_residual: bool = False,
-    cache_dir: str | Path | None = None,
-    seed: int = 0,
-) -> MpcBenchmark:
-    """Solve times of ``solve`` in a closed loop at ``ctrl.rate_hz``: a double-integrator plant on a circle.
-
-    With ``with_residual`` the plant carries a small random affine residual and the MPC is
-    given its exact linearisation every tick (the KNODE parameter write is part of the cost).
-    """
-    mpc = TranslationalMpc(ctrl, vehicle, cache_dir=cache_dir)
-    rng = np.random.default_rng(seed)
-    n, tc = ctrl.horizon, 1.0 / ctrl.rate_hz
-    residual = ResidualLinearisation.zeros(n)
-    if with_residual:
-        c0 = rng.normal(0.0, 0.3, 3)
-        jx0 = rng.normal(0.0, 0.05, (3, NX))
-        jx0[:, :3] = 0.0  # translation invariant, as the KNODE residual
-        ju0 = rng.normal(0.0, 0.02, (3, NU))
-        residual = ResidualLinearisation(np.tile(c0, (n, 1)), np.tile(jx0, (n, 1, 1)), np.tile(ju0, (n, 1, 1)))
-    r0 = residual  # the plant's residual is the one the MPC is told (stage 0 of a constant queue)
-
-    def plant(xs: np.ndarray, us: np.ndarray) -> np.ndarray:
-        return np.concatenate((xs[3:], us + r0.c[0] + r0.jx[0] @ xs + r0.ju[0] @ us))
-
-    offsets = ctrl.dt * np.arange(n + 1)
-    x = np.concatenate((circle_samples(np.zeros(1), 0.5, 0.4, 1.0).p[0], np.zeros(3)))
-    ticks = int(round(seconds / tc))
-    times = np.empty(ticks)
-    errors = np.empty(ticks)
-    failures = 0
-    for i in range(ticks):
-        t = i * tc
-        ref = circle_samples(t + offsets, 0.5, 0.4, 1.0)
-        sol = mpc.solve(x, ref, residual if with_residual else None)
-        times[i] = sol.solve_time
-        failures += not sol.ok
-        x = rk4_step(plant, x, sol.acc, tc)
-        errors[i] = np.linalg.norm(x[:3] - circle_samples(np.array([t + tc]), 0.5, 0.4, 1.0).p[0])
-    ms = times * 1e3
-    return MpcBenchmark(
-        backend=mpc.backend,
-        ticks=ticks,
-        median_ms=float(np.median(ms)),
-        p99_ms=float(np.percentile(ms, 99)),
-        max_ms=float(ms.max()),
-        failures=failures,
-        rescues=mpc.rescues,
-        rms_error=float(np.sqrt(np.mean(errors[ticks // 2 :] ** 2))),
-    )

@@ -73,6 +73,7 @@ class LearnerSettings:
     holdout_fraction: float  # training.validation_fraction: the tail the paper-lockstep gate judges on
     queue_size: int  # knode.queue_size
     monitor: MonitorSettings | None = None  # drop a flying model the world changed under (None: never)
+    ground_z: float | None = None  # the floor's height: ticks near it are not learned from (None: no floor)
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,8 @@ class OnlineLearner:
         self.client = client
         self.log = log
         self._wall = wall
-        self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time)
+        self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time,
+                                       ground_z=settings.ground_z)
         self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)

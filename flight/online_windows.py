@@ -13,7 +13,7 @@ import numpy as np
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.flight_data, which imports torch through its Segment):
-MIN_HEIGHT = 0.1  # m above the first estimate: ground effect and contact are not the model's business
+MIN_HEIGHT = 0.1  # m above the ground: ground effect and contact are not the model's business
 ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks were not
 
 
@@ -35,9 +35,16 @@ class WindowRecorder:
     array stores.
     """
 
-    def __init__(self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0) -> None:
+    def __init__(
+        self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None
+    ) -> None:
+        """``ground_z``: the floor's height; ticks within ``MIN_HEIGHT`` of it are not recorded
+        (None: no floor rule, for a flight that starts in the air or a plant without ground)."""
         self.t_col = t_col
         self.start_time = start_time
+        # A longer gap between ticks (flown blind, or by another controller) ends the run; lockstep
+        # ticks land on the plant's 2 ms grid, so neighbours can be up to two plant steps apart.
+        self._max_gap = 3.0 / rate_hz
         cap = int(math.ceil(max(keep_s, 3.0 * t_col) * rate_hz)) + 8
         self._t = np.empty(cap)
         self._x = np.empty((cap, 6))
@@ -45,7 +52,7 @@ class WindowRecorder:
         self._n = 0  # ticks in the run buffer
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
-        self._ground: float | None = None
+        self._ground = ground_z
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
         self.last_added = False  # whether the newest tick joined the run (the model monitor follows the run)
@@ -57,12 +64,11 @@ class WindowRecorder:
         if est is None:
             self._break()
             return None
-        if self._ground is None:
-            self._ground = float(est.p[2])
         if (
             tick.source not in ELIGIBLE_SOURCES
             or tick.t < self.start_time
-            or est.p[2] <= self._ground + MIN_HEIGHT
+            or (self._ground is not None and est.p[2] <= self._ground + MIN_HEIGHT)
+            or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
         ):
             self._break()
             return None

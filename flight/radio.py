@@ -36,7 +36,7 @@ from cflib.crazyflie.log import LogConfig
 
 if TYPE_CHECKING:
     from cfknode.config import RadioConfig
-    from cfknode.flight.mellinger import AttitudeSetpoint
+    from cfknode.kernel.setpoint import AttitudeSetpoint
 
 _TIME_EPS = 1e-9  # s; tick times built as k * period must not miss a TX slot to rounding
 SUPERVISOR_PROTOCOL = 12  # CRTP protocol with the supervisor port and its emergency-stop watchdog (HF 5)

@@ -26,18 +26,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cfknode.config import TrajectoryConfig
-
-
-@dataclass(frozen=True)
-class RefSamples:
-    """Reference at times ``t`` (n,): position, velocity, acceleration (n, 3), yaw (n,) rad."""
-
-    t: np.ndarray
-    p: np.ndarray
-    v: np.ndarray
-    a: np.ndarray
-    yaw: np.ndarray
+from cfknode.flight.settings import TrajectoryConfig
+from cfknode.kernel.reference import RefSamples
 
 
 def _smootherstep(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -253,3 +243,15 @@ class Trajectory:
 def make_trajectory(cfg: TrajectoryConfig, start_position: Sequence[float] | np.ndarray) -> Trajectory:
     """The flight reference for ``cfg``, starting on the ground at ``start_position``."""
     return Trajectory(cfg, start_position)
+
+
+def circle_samples(t: np.ndarray, radius: float, speed: float, height: float) -> RefSamples:
+    """A horizontal circle about the origin at ``height``, sampled at times ``t`` (benchmarks, tests)."""
+    t = np.asarray(t, dtype=float)
+    w = speed / radius
+    c, s = np.cos(w * t), np.sin(w * t)
+    z = np.zeros_like(t)
+    p = np.stack((radius * c, radius * s, z + height), axis=-1)
+    v = np.stack((-speed * s, speed * c, z), axis=-1)
+    a = np.stack((-speed * w * c, -speed * w * s, z), axis=-1)
+    return RefSamples(t, p, v, a, z.copy())

@@ -4,8 +4,8 @@ Each ``/mocap`` message was written when the flight loop received the frame (``t
 carries the frame's sample time (``stamp``, or ``t`` when it was not recorded). A replayed
 pose has its sample time as ``Pose.t`` and becomes visible to ``latest(now)`` at its
 receive time, so the recorded latency and jitter come back too. Messages logged as
-dropouts (``received: false``) count as dropouts once their time has passed. A log cut
-short by a crash replays up to its last complete record (``read_log`` is tolerant of that).
+dropouts (``received: false``) count as dropouts once their time has passed. Reading the
+log is the application's job: this takes its ``/mocap`` messages.
 
 ``time_offset`` shifts the recording onto the replaying clock: replay time = log time -
 ``time_offset``, so ``time_offset=12.0`` starts at the log's t = 12 s.
@@ -14,12 +14,10 @@ short by a crash replays up to its last complete record (``read_log`` is toleran
 from __future__ import annotations
 
 import bisect
-from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from cfknode.flight.flightlog import LogData, read_log
 from cfknode.mocap.source import MocapStats, Pose, RateMeter
 
 
@@ -42,12 +40,14 @@ class ReplayMocap:
         self._index = 0  # poses visible so far (the loop asks with increasing times)
 
     @classmethod
-    def from_log(cls, log: str | Path | LogData, *, time_offset: float = 0.0) -> "ReplayMocap":
-        data = log if isinstance(log, LogData) else read_log(log)
+    def from_messages(
+        cls, messages: Iterable[Mapping[str, Any]], *, name: str = "the log", time_offset: float = 0.0
+    ) -> "ReplayMocap":
+        """From a flight log's ``/mocap`` messages (``name`` for messages: the log's path)."""
         available: list[float] = []
         poses: list[Pose] = []
         dropouts: list[float] = []
-        for msg in data.topic("/mocap"):
+        for msg in messages:
             t = float(msg["t"]) - time_offset
             if not msg.get("received", True) or msg.get("p") is None or msg.get("q") is None:
                 dropouts.append(t)
@@ -59,7 +59,7 @@ class ReplayMocap:
             poses.append(Pose(stamp, msg["p"], msg["q"]))
             available.append(t)
         if not poses:
-            raise ReplayError(f"{data.path}: no mocap poses to replay (topic /mocap is empty)")
+            raise ReplayError(f"{name}: no mocap poses to replay (topic /mocap is empty)")
         return cls(available, poses, dropouts)
 
     @property
@@ -104,6 +104,3 @@ class ReplayMocap:
     def __repr__(self) -> str:
         return f"ReplayMocap({len(self)} poses, {self.start:.3f}..{self.duration:.3f} s)"
 
-
-def replay_from_log(path: str | Path, **kwargs: Any) -> ReplayMocap:
-    return ReplayMocap.from_log(path, **kwargs)

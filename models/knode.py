@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from cfknode.config import KnodeConfig
+from cfknode.models.settings import KnodeConfig
 from cfknode.models.modelfile import (
     ACTIVATIONS,
     N_IN,

@@ -364,12 +364,9 @@ def _check_model(model: ModelFile, name: str) -> None:
 
 
 def _software_version() -> str:
-    try:
-        from cfknode import __version__
+    from cfknode.kernel.version import __version__
 
-        return __version__
-    except ImportError:  # only when used outside the package
-        return "unknown"
+    return __version__
 
 
 def _fsync_dir(directory: Path) -> None:

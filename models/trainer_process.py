@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from cfknode.config import FaultInjection, KnodeConfig, TrainingConfig
+from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
 from cfknode.models.modelfile import ModelFile, Normalisation
 
 CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)

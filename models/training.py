@@ -30,7 +30,7 @@ from scipy.signal import butter, filtfilt
 from torch import nn
 from torchdiffeq import odeint, odeint_adjoint
 
-from cfknode.config import KnodeConfig, TrainingConfig
+from cfknode.models.settings import KnodeConfig, TrainingConfig
 from cfknode.models.knode import KnodeQueue, TrainingResidual, to_torch_queue
 from cfknode.models.modelfile import ModelFile, Normalisation, TrainingInfo
 

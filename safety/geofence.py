@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cfknode.config import ConfigError, SafetyConfig
-from cfknode.flight.trajectory import RefSamples
+from cfknode.kernel.errors import ConfigError
+from cfknode.safety.settings import SafetyConfig
+from cfknode.kernel.reference import RefSamples
 
 _AXES = "xyz"
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cfknode.flight.trajectory import RefSamples
+from cfknode.kernel.reference import RefSamples
 
 _PEAK_OVER_MEAN = 1.875
 MIN_DURATION_S = 0.5

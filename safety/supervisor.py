@@ -35,9 +35,12 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from cfknode.config import Config, ConfigError, SafetyConfig, VehicleConfig
-from cfknode.flight.mellinger import AttitudeSetpoint, thrust_command
-from cfknode.flight.trajectory import RefSamples, Trajectory
+from cfknode.kernel.errors import ConfigError
+from cfknode.kernel.vehicle import VehicleConfig
+from cfknode.safety.settings import SafetyConfig
+from cfknode.kernel.setpoint import AttitudeSetpoint, thrust_command
+from cfknode.kernel.reference import Reference as Trajectory
+from cfknode.kernel.reference import RefSamples
 from cfknode.mocap.source import Pose
 from cfknode.safety.geofence import Geofence, axis_name, clamp_reference
 from cfknode.safety.landing import Landing
@@ -209,15 +212,6 @@ class Supervisor:
         self.events: list[str] = []
         if self._clamp:
             self._event(0.0, "warning", "the reference leaves the geofence's soft box; it is clamped into it")
-
-    @classmethod
-    def from_config(
-        cls, cfg: Config, radio: Radio, *, trajectory: Trajectory, log: Log, deadlines_apply: bool,
-        inputs: SupervisorInputs = SupervisorInputs(),
-    ) -> Supervisor:
-        return cls(cfg.safety, radio, trajectory=trajectory, vehicle=cfg.vehicle, log=log,
-                   rate_hz=cfg.controller.rate_hz, deadlines_apply=deadlines_apply, inputs=inputs,
-                   robot=cfg.hardware.robot if cfg.backend == "cf" else "")
 
     # --- what other parts read ------------------------------------------------------------------
 

@@ -10,23 +10,9 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
-
-@dataclass(frozen=True)
-class LinkStatus:
-    """The radio link as the host sees it.
-
-    ``lost``: cflib's ``connection_lost`` message (the link is gone for good), else None.
-    ``silence_s``: time since the drone last acknowledged a packet (0 when unknown).
-    ``latency_s``: round trip of cflib's link-statistics pings (NaN when unknown).
-    """
-
-    lost: str | None = None
-    silence_s: float = 0.0
-    latency_s: float = math.nan
+from cfknode.kernel.link import LINK_OK, LinkSource, LinkStatus
 
 
-LINK_OK = LinkStatus()
-LinkSource = Callable[[float], LinkStatus]
 
 
 def radio_link_status(radio: Any) -> LinkSource:

@@ -13,10 +13,11 @@ from typing import Callable
 
 import numpy as np
 
-from cfknode.config import Config
+from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.battery import Battery
 from cfknode.sim_backend.firmware import Firmware
 from cfknode.sim_backend.scenario import mass_at
+from cfknode.sim_backend.settings import SimConfig
 from cfknode.sim_backend.vehicle import Vehicle
 
 StepObserver = Callable[[float, np.ndarray], None]
@@ -30,16 +31,18 @@ class SimCrazyflie:
     differ. ``rng`` is the simulator's seeded generator for stochastic scenario elements.
     """
 
-    def __init__(self, config: Config) -> None:
-        self.config = config
-        self.dt = config.sim.dt
+    def __init__(self, vehicle: VehicleConfig, sim: SimConfig) -> None:
+        """``vehicle``: the airframe the firmware and plant are built for; ``sim``: the plant and scenario."""
+        self.vehicle_config = vehicle
+        self.sim_config = sim
+        self.dt = sim.dt
         self.lock = threading.RLock()
-        self.rng = np.random.default_rng(config.sim.seed)
-        self.vehicle = Vehicle(config.vehicle, config.sim)
-        self.firmware = Firmware(config.vehicle, self.dt, lock=self.lock)
-        self.battery = Battery(config.sim.battery_voltage)
-        self._nominal_mass = config.vehicle.mass
-        self._mass_changes = config.sim.mass_changes
+        self.rng = np.random.default_rng(sim.seed)
+        self.vehicle = Vehicle(vehicle, sim)
+        self.firmware = Firmware(vehicle, self.dt, lock=self.lock)
+        self.battery = Battery(sim.battery_voltage)
+        self._nominal_mass = vehicle.mass
+        self._mass_changes = sim.mass_changes
         self._mass = mass_at(0.0, self._nominal_mass, self._mass_changes)
         self._k = 0
         self._observers: list[StepObserver] = []

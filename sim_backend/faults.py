@@ -31,8 +31,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from cfknode.config import Config, ConfigError, FaultWindow, Gust, SimConfig, VehicleConfig
-from cfknode.safety.watchdogs import LinkStatus
+from cfknode.kernel.errors import ConfigError
+from cfknode.kernel.vehicle import VehicleConfig
+from cfknode.sim_backend.settings import FaultsConfig, FaultWindow, Gust, SimConfig
+from cfknode.kernel.link import LinkStatus
 from cfknode.sim_backend.vehicle import Vehicle
 
 _TIME_EPS = 1e-9
@@ -48,18 +50,17 @@ def _spans(windows: Sequence[FaultWindow]) -> tuple[tuple[float, float], ...]:
     return tuple((w.t, w.t + w.duration) for w in windows)
 
 
-def check_faults(cfg: Config) -> None:
+def check_faults(faults: FaultsConfig, sim: SimConfig, controller_kind: str, backend: str) -> None:
     """Refuse fault settings that cannot be injected; one-line ``ConfigError``."""
-    faults = cfg.faults
     for key in ("mocap_outages", "radio_outages", "solver_failures", "gusts"):
         for i, window in enumerate(getattr(faults, key)):
             if window.t < 0 or window.duration <= 0:
                 raise ConfigError(f"config key 'faults.{key}[{i}]' needs t >= 0 and duration > 0, got {window}")
-    if faults.gusts and not any(c > 0 for c in cfg.sim.drag):
+    if faults.gusts and not any(c > 0 for c in sim.drag):
         raise ConfigError("config key 'faults.gusts' needs 'sim.drag' > 0: wind acts on the drone through drag")
-    if faults.nan_model_at >= 0 and cfg.controller.kind == "geometric":
+    if faults.nan_model_at >= 0 and controller_kind == "geometric":
         raise ConfigError("config key 'faults.nan_model_at' needs an MPC controller; geometric uses no model")
-    if cfg.backend != "sim" and (faults != dataclasses.replace(faults, **_NO_FAULTS)):
+    if backend != "sim" and (faults != dataclasses.replace(faults, **_NO_FAULTS)):
         raise ConfigError("config section 'faults' injects faults into the simulator; it needs backend sim")
 
 
@@ -233,7 +234,7 @@ class _SelfInterrupt:
 class SimFaults:
     """The faults installed on one simulator, and the wrappers the mission puts around its parts."""
 
-    config: Config
+    config: FaultsConfig
     blackout: RadioBlackout | None = None
     battery_drop: _BatteryDrop | None = None
 
@@ -243,11 +244,11 @@ class SimFaults:
 
     def controller(self, mpc: Any, now: Callable[[], float]) -> Any:
         """``mpc``, failing inside ``faults.solver_failures``."""
-        windows = self.config.faults.solver_failures
+        windows = self.config.solver_failures
         return FailingSolver(mpc, windows, now) if windows and mpc is not None else mpc
 
     def observers(self, model_slot: Any) -> list[Any]:
-        faults = self.config.faults
+        faults = self.config
         out: list[Any] = []
         if faults.nan_model_at >= 0:
             if model_slot is None:
@@ -262,18 +263,16 @@ class SimFaults:
 
     @property
     def mocap_outages(self) -> tuple[tuple[float, float], ...]:
-        return tuple((w.t, w.duration) for w in self.config.faults.mocap_outages)
+        return tuple((w.t, w.duration) for w in self.config.mocap_outages)
 
 
-def install_faults(sim: Any, cfg: Config) -> SimFaults:
-    """Install the configured faults on a fresh ``SimCrazyflie`` (before its first step)."""
-    check_faults(cfg)
-    faults = cfg.faults
-    installed = SimFaults(cfg)
+def install_faults(sim: Any, faults: FaultsConfig) -> SimFaults:
+    """Install ``faults`` on a fresh ``SimCrazyflie`` (before its first step)."""
+    installed = SimFaults(faults)
     if faults.gusts:
         if sim.steps != 0:
             raise RuntimeError("gusts must be installed before the simulator's first step")
-        sim.vehicle = GustVehicle(cfg.vehicle, cfg.sim, faults.gusts)
+        sim.vehicle = GustVehicle(sim.vehicle_config, sim.sim_config, faults.gusts)
     if faults.radio_outages:
         installed.blackout = RadioBlackout(sim, faults.radio_outages)
     if faults.battery_drop_at >= 0:

@@ -46,7 +46,7 @@ from typing import Sequence
 
 import numpy as np
 
-from cfknode.config import VehicleConfig
+from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.vehicle import CMD_MAX, command_to_force
 
 

@@ -10,7 +10,7 @@ import threading
 import time
 from typing import Callable
 
-from cfknode.flight.clock import Steppable
+from cfknode.kernel.clock import Steppable
 
 
 class RealtimeStepper:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from cfknode.config import MassChange
+from cfknode.sim_backend.settings import MassChange
 
 # A plant step starting at t_k applies a change scheduled at t_c when t_k >= t_c - TIME_TOL:
 # step times are k * dt in binary floating point, so a change "at 2.0 s" must not slip a

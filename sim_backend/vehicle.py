@@ -27,7 +27,8 @@ from typing import Sequence
 
 import numpy as np
 
-from cfknode.config import SimConfig, VehicleConfig
+from cfknode.kernel.vehicle import VehicleConfig
+from cfknode.sim_backend.settings import SimConfig
 from cfknode.models.quadrotor import Backend, rigid_body_rhs
 from cfknode.sim_backend.scenario import drag_force
 

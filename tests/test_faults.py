@@ -287,22 +287,22 @@ def test_a_late_mpc_answer_is_replaced_by_the_fallback():
 
     from cfknode.flight.estimator import StateEstimate
     from cfknode.flight.geometric import GeometricGains, geometric_acc
-    from cfknode.flight.loop import _control, _Previous
+    from cfknode.flight.controller import Controller
     from cfknode.flight.mpc import MpcSolution
     from cfknode.flight.trajectory import make_trajectory
 
     cfg = load_config()
     n = cfg.controller.horizon
     slow = MpcSolution(np.array([0.5, 0.0, 0.0]), True, "ok", 0.004, np.zeros((n + 1, 6)), np.zeros((n, 3)))
-    parts = SimpleNamespace(mpc=SimpleNamespace(solve=lambda x0, ref, residual=None: slow), model=None)
+    solver = SimpleNamespace(solve=lambda x0, ref, residual=None: slow, backend="slow")
     ref = make_trajectory(cfg.trajectory, np.zeros(3)).sample(2.0 + cfg.controller.dt * np.arange(n + 1))
     est = StateEstimate(2.0, ref.p[0] + [0.05, 0.0, 0.0], np.zeros(3), np.array([1.0, 0, 0, 0]), 0.0)
     gains = GeometricGains.from_config(cfg.controller, cfg.vehicle)
-    acc, ok, solve_s, source, status = _control(parts, est, ref, gains, _Previous(), deadline=0.002)
-    assert (ok, source, status, solve_s) == (False, "fallback", "deadline", 0.004)
-    np.testing.assert_allclose(acc, geometric_acc(est.p, est.v, ref.p[0], ref.v[0], ref.a[0], gains))
-    acc, ok, _, source, status = _control(parts, est, ref, gains, _Previous(), deadline=None)
-    assert (ok, source, status) == (True, "mpc", "ok") and acc[0] == 0.5
+    late = Controller(cfg.controller, cfg.vehicle, solver=solver, deadline_s=0.002).step(2.0, est, ref)
+    assert (late.ok, late.source, late.status, late.solve_s) == (False, "fallback", "deadline", 0.004)
+    np.testing.assert_allclose(late.acc, geometric_acc(est.p, est.v, ref.p[0], ref.v[0], ref.a[0], gains))
+    lockstep = Controller(cfg.controller, cfg.vehicle, solver=solver, deadline_s=None).step(2.0, est, ref)
+    assert (lockstep.ok, lockstep.source, lockstep.status) == (True, "mpc", "ok") and lockstep.acc[0] == 0.5
 
 
 def test_the_dashboards_e_stop_key_lands_through_the_supervisor_hook(tmp_path):
@@ -327,7 +327,7 @@ def test_radio_blackout_loses_packets_in_its_window_and_the_link_after_100():
     from cfknode.sim_backend.crazyflie import SimCrazyflie
     from cfknode.sim_backend.faults import RadioBlackout
 
-    sim = SimCrazyflie(load_config())
+    sim = SimCrazyflie(load_config().vehicle, load_config().sim)
     firmware = sim.firmware
     short = RadioBlackout(sim, [FaultWindow(1.0, 0.3)])
     assert sim.firmware is not firmware and sim.firmware.step == firmware.step
@@ -340,7 +340,7 @@ def test_radio_blackout_loses_packets_in_its_window_and_the_link_after_100():
     sim.firmware.on_extpose(1.35, (0, 0, 0), (0, 0, 0, 1))
     assert firmware.extposes_received == 1 and short.link_status(1.35).silence_s == 0.0
 
-    sim2 = SimCrazyflie(load_config())
+    sim2 = SimCrazyflie(load_config().vehicle, load_config().sim)
     long = RadioBlackout(sim2, [FaultWindow(1.0, 1.5)])
     for i in range(100):
         sim2.firmware.on_rpyt(1.0 + 0.005 * i, 0.0, 0.0, 0.0, 0)

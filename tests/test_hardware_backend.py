@@ -17,13 +17,14 @@ import pytest
 from rich.console import Console
 
 from cfknode.config import Config, ConfigError, load_config
+from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog, read_log
 from cfknode.flight.loop import FlightParts, fly
 from cfknode.flight.radio import RadioError
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.hardware import cf_session, flight_config, hardware_backend, robot_for, simulated_hardware
-from cfknode.mission import build_controller
+from cfknode.mission import build_controller, build_supervisor
 from cfknode.mocap.motioncapture_source import MocapError
 from cfknode.robots import example_robots_path, load_robot
 from cfknode.safety.preflight import PreflightError
@@ -73,7 +74,7 @@ def fly_cf(cfg: Config, name_hint: str, inspect: Any = None, flying: threading.E
         with FlightLog.create(flight_cfg.log.dir, flight_cfg.to_dict(), "test", name_hint) as log:
             for event in hw.preflight.events():
                 log.write("/events", 0.0, event)
-            supervisor = Supervisor.from_config(
+            supervisor = build_supervisor(
                 flight_cfg, hw.radio, trajectory=trajectory, log=log, deadlines_apply=True,
                 inputs=SupervisorInputs(
                     battery_voltage=lambda: (hw.radio.telemetry() or SimpleNamespace(vbat=None)).vbat,
@@ -82,8 +83,9 @@ def fly_cf(cfg: Config, name_hint: str, inspect: Any = None, flying: threading.E
             )
             parts = FlightParts(
                 clock=hw.clock, mocap=hw.mocap, estimator=VelocityEstimator(flight_cfg.estimator),
-                trajectory=trajectory, mpc=mpc, supervisor=supervisor, log=log, vehicle=flight_cfg.vehicle,
-                controller=flight_cfg.controller, truth=hw.truth,
+                trajectory=trajectory, supervisor=supervisor, log=log, truth=hw.truth,
+                controller=Controller(flight_cfg.controller, flight_cfg.vehicle, solver=mpc,
+                                      deadline_s=flight_cfg.safety.solve_deadline_s),
             )
             if flying is not None:
                 flying.set()

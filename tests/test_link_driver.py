@@ -333,7 +333,7 @@ def test_real_simulator_behind_stock_cflib() -> None:
     from cfknode.config import load_config
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 
-    sim = SimCrazyflie(load_config())
+    sim = SimCrazyflie(load_config().vehicle, load_config().sim)
     uri = f"sim://{next(_uris)}"
     register_simulator(uri, sim)
     try:
@@ -434,7 +434,7 @@ def test_stock_cflib_signs_and_thrust_clamp_on_the_real_simulator() -> None:
     from cfknode.models.quadrotor import quat_to_euler_zyx
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 
-    sim = SimCrazyflie(load_config())
+    sim = SimCrazyflie(load_config().vehicle, load_config().sim)
     uri = f"sim://{next(_uris)}"
     register_simulator(uri, sim)
     try:

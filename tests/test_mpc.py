@@ -14,8 +14,8 @@ from cfknode.flight.mpc import (
     ResidualLinearisation,
     TranslationalMpc,
     acceleration_bounds,
-    circle_samples,
 )
+from cfknode.flight.trajectory import circle_samples
 from cfknode.models.quadrotor import rk4_step
 
 

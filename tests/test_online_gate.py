@@ -58,13 +58,8 @@ def flown_data(residual: np.ndarray, n: int = 240, seed: int = 0) -> tuple[np.nd
 # --- recorder ----------------------------------------------------------------------------------
 
 
-def on_ground(rec: WindowRecorder) -> WindowRecorder:
-    rec.add(tick(-1.0, z=0.0))  # the first estimate is where the flight starts: the ground
-    return rec
-
-
 def test_recorder_cuts_windows_of_t_col() -> None:
-    rec = on_ground(WindowRecorder(t_col=0.5, rate_hz=RATE))
+    rec = WindowRecorder(t_col=0.5, rate_hz=RATE, ground_z=0.0)
     windows = [w for k in range(800) if (w := rec.add(tick(k / RATE))) is not None]
     assert len(windows) == 3  # 800 ticks = 2 s; each window takes 201 ticks (t_col spanned exactly)
     for w in windows:
@@ -75,8 +70,7 @@ def test_recorder_cuts_windows_of_t_col() -> None:
 
 
 def test_recorder_skips_ground_and_non_mpc_ticks_and_breaks_the_run() -> None:
-    rec = WindowRecorder(t_col=0.25, rate_hz=RATE)
-    rec.add(tick(0.0, z=0.0))  # first estimate: the ground
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
     assert rec.add(tick(0.0025, z=0.05)) is None  # below MIN_HEIGHT above the ground
     out = [rec.add(tick(0.01 + k / RATE)) for k in range(60)]
     assert not any(w is not None for w in out)  # 60 ticks < one 0.25 s window
@@ -87,7 +81,7 @@ def test_recorder_skips_ground_and_non_mpc_ticks_and_breaks_the_run() -> None:
 
 
 def test_a_window_never_spans_a_model_change() -> None:
-    rec = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE))
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
     windows = []
     for k in range(400):
         version = 0 if k < 150 else 1  # someone swapped the model between tick 149 and 150
@@ -101,13 +95,23 @@ def test_a_window_never_spans_a_model_change() -> None:
         assert w.t1 < 150 / RATE or w.t0 >= 150 / RATE
         assert w.version == (0 if w.t1 < 150 / RATE else 1)
     # Even without the reset, a version change seen in the ticks ends the run.
-    rec2 = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE))
+    rec2 = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
     spans = [w for k in range(400) if (w := rec2.add(tick(k / RATE, version=int(k >= 150)))) is not None]
     assert len(spans) == 3 and all(w.t1 < 150 / RATE or w.t0 >= 150 / RATE for w in spans)
 
 
+def test_recorder_starts_in_the_air_and_breaks_on_gaps() -> None:
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE)  # no floor: a flight that starts in the air records at once
+    windows = [w for k in range(101) if (w := rec.add(tick(k / RATE, z=1.0))) is not None]
+    assert len(windows) == 1 and windows[0].t0 == pytest.approx(0.0)
+    for k in range(50):
+        rec.add(tick(0.3 + k / RATE, z=1.0))
+    rec.add(tick(0.3 + 60 / RATE, z=1.0))  # ten ticks missing (flown blind, or by someone else)
+    assert rec.discarded == 1
+
+
 def test_recorder_fresh_data_and_long_runs() -> None:
-    rec = on_ground(WindowRecorder(t_col=0.25, rate_hz=RATE, keep_s=1.0))
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, keep_s=1.0, ground_z=0.0)
     for k in range(2000):  # 5 s: the buffer compacts several times
         rec.add(tick(k / RATE))
     t, x, u = rec.fresh(4.9)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cfknode.config import load_config
-from cfknode.flight.mellinger import AttitudeSetpoint
+from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.flight.radio import CflibRadio, HardwareRadio, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
 from fakes import RecordingFirmware
@@ -216,7 +216,7 @@ def test_flies_the_real_simulator_and_hands_it_back_unlocked() -> None:
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 
     cfg = load_config()
-    sim = SimCrazyflie(cfg)
+    sim = SimCrazyflie(cfg.vehicle, cfg.sim)
     uri = f"sim://{next(_uris)}"
     register_simulator(uri, sim)
     radio = CflibRadio.from_config(cfg.radio, lockstep=True, clock=lambda: sim.t, advance=sim.step_to)
@@ -262,7 +262,7 @@ PARAMS = {"stabilizer.estimator": 2, "stabilizer.controller": 1, "locSrv.extPosS
 def real_sim(tmp_path: Any) -> Iterator[tuple[Any, str]]:
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 
-    sim, uri = SimCrazyflie(load_config()), f"sim://{next(_uris)}"
+    sim, uri = SimCrazyflie(load_config().vehicle, load_config().sim), f"sim://{next(_uris)}"
     register_simulator(uri, sim)
     yield sim, uri
     unregister_simulator(uri)

@@ -11,6 +11,11 @@ from cfknode.flight.flightlog import FlightLog, read_log
 from cfknode.mocap.replay import ReplayError, ReplayMocap
 from cfknode.mocap.source import PoseSource
 
+
+def _from_log(log, time_offset: float = 0.0) -> ReplayMocap:
+    data = read_log(log) if not hasattr(log, "topic") else log
+    return ReplayMocap.from_messages(data.topic("/mocap"), name=str(data.path), time_offset=time_offset)
+
 LATENCY = 0.004
 
 
@@ -34,7 +39,7 @@ def write_flight(tmp_path: Path, frames: int = 300, dropped: tuple[int, ...] = (
 
 
 def test_poses_come_back_at_their_receive_time_with_their_sample_time(tmp_path: Path) -> None:
-    replay = ReplayMocap.from_log(write_flight(tmp_path))
+    replay = _from_log(write_flight(tmp_path))
     assert isinstance(replay, PoseSource)
     assert len(replay) == 297
     assert replay.latest(0.0) is None  # the first frame is received at 4 ms
@@ -52,7 +57,7 @@ def test_poses_come_back_at_their_receive_time_with_their_sample_time(tmp_path: 
 
 
 def test_dropouts_hold_the_previous_pose_and_are_counted(tmp_path: Path) -> None:
-    replay = ReplayMocap.from_log(write_flight(tmp_path))
+    replay = _from_log(write_flight(tmp_path))
     assert replay.latest(0.06 + LATENCY).t == pytest.approx(0.06)
     assert replay.latest(0.085).t == pytest.approx(0.06)  # frames 7 and 8 were lost
     assert replay.stats().dropouts == 2
@@ -64,7 +69,7 @@ def test_dropouts_hold_the_previous_pose_and_are_counted(tmp_path: Path) -> None
 
 
 def test_time_offset_and_going_back_in_time(tmp_path: Path) -> None:
-    replay = ReplayMocap.from_log(write_flight(tmp_path), time_offset=1.0)
+    replay = _from_log(write_flight(tmp_path), time_offset=1.0)
     assert replay.latest(0.0).t == pytest.approx(-0.01)  # the frame of log t = 0.99 s
     assert replay.latest(0.6 + LATENCY).t == pytest.approx(0.6)
     assert replay.latest(-0.5).t == pytest.approx(-0.51)  # a step back bisects
@@ -73,7 +78,7 @@ def test_time_offset_and_going_back_in_time(tmp_path: Path) -> None:
 
 def test_a_truncated_log_replays_up_to_where_it_ends(tmp_path: Path) -> None:
     path = write_flight(tmp_path)
-    full = ReplayMocap.from_log(path)
+    full = _from_log(path)
     raw = path.read_bytes()
     counts = []
     for cut in np.linspace(len(raw) * 0.3, len(raw) - 1, 6).astype(int):
@@ -81,7 +86,7 @@ def test_a_truncated_log_replays_up_to_where_it_ends(tmp_path: Path) -> None:
         cut_path.write_bytes(raw[:cut])
         data = read_log(cut_path)
         assert data.truncated
-        part = ReplayMocap.from_log(data)
+        part = _from_log(data)
         counts.append(len(part))
         # A prefix of the full replay, pose for pose.
         t_end = part.duration
@@ -94,4 +99,4 @@ def test_a_log_without_mocap_is_a_clear_error(tmp_path: Path) -> None:
     with FlightLog.create(tmp_path, {}, "test", "empty") as log:
         log.write("/events", 0.0, {"level": "info", "text": "nothing flew"})
     with pytest.raises(ReplayError, match=r"empty\.mcap: no mocap poses to replay"):
-        ReplayMocap.from_log(log.path)
+        _from_log(log.path)

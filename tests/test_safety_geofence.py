@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cfknode.config import ConfigError, load_config
-from cfknode.flight.trajectory import RefSamples
+from cfknode.kernel.reference import RefSamples
 from cfknode.safety.geofence import Geofence, clamp_reference
 from cfknode.safety.landing import Landing
 from cfknode.safety.watchdogs import LowPass, Persistence, tilt_deg

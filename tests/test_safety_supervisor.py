@@ -11,7 +11,7 @@ import pytest
 from cfknode.config import ConfigError, load_config
 from cfknode.flight.estimator import StateEstimate
 from cfknode.flight.flightlog import check_message
-from cfknode.flight.mellinger import AttitudeSetpoint
+from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.mocap.source import Pose
 from cfknode.models.quadrotor import euler_zyx_to_quat
@@ -19,6 +19,7 @@ from cfknode.safety.supervisor import (
     BLIND, CUTOFF_HOLD_S, FLY, OFF, STOP_HOLD_S, State, Supervisor, SupervisorInputs,
 )
 from cfknode.safety.watchdogs import LinkStatus
+from cfknode.mission import build_supervisor
 
 RATE = 400.0
 PERIOD = 1.0 / RATE
@@ -69,7 +70,7 @@ class Rig:
         self.traj = make_trajectory(self.cfg.trajectory, np.zeros(3))
         self.radio = FakeRadio()
         self.log = FakeLog()
-        self.sup = Supervisor.from_config(self.cfg, self.radio, trajectory=self.traj, log=self.log,
+        self.sup = build_supervisor(self.cfg, self.radio, trajectory=self.traj, log=self.log,
                                           deadlines_apply=deadlines, inputs=SupervisorInputs(**inputs))
         self.offsets = self.cfg.controller.dt * np.arange(self.cfg.controller.horizon + 1)
         self.k = 0
@@ -376,5 +377,5 @@ def test_supervisor_landing_cuts_the_motors_at_touchdown():
 def test_bad_watchdog_times_are_refused():
     cfg = load_config(overrides={**SHORT, "safety.mocap_stop_s": 0.05})
     with pytest.raises(ConfigError, match="mocap_stop_s"):
-        Supervisor.from_config(cfg, FakeRadio(), trajectory=make_trajectory(cfg.trajectory, np.zeros(3)),
+        build_supervisor(cfg, FakeRadio(), trajectory=make_trajectory(cfg.trajectory, np.zeros(3)),
                                log=FakeLog(), deadlines_apply=False)

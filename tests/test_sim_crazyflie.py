@@ -17,17 +17,21 @@ from cfknode.sim_backend.crazyflie import SimCrazyflie
 TX_PERIOD = 0.01  # 100 Hz streaming, as the radio does
 
 
+def _parts(cfg):
+    return cfg.vehicle, cfg.sim
+
+
 def make_sim(z: float = 0.0, airborne_hover: bool = False, **overrides) -> SimCrazyflie:
     overrides.setdefault("sim.initial_position", [0.0, 0.0, z])
-    sim = SimCrazyflie(load_config(overrides=overrides))
+    sim = SimCrazyflie(*_parts(load_config(overrides=overrides)))
     if airborne_hover:
-        f = sim.mass * sim.config.vehicle.gravity / 4.0
+        f = sim.mass * sim.vehicle_config.gravity / 4.0
         sim.vehicle.reset(sim.state, [f] * 4)
     return sim
 
 
 def hover_cmd(sim: SimCrazyflie) -> int:
-    return round(sim.mass * sim.config.vehicle.gravity / sim.config.vehicle.newton_per_cmd)
+    return round(sim.mass * sim.vehicle_config.gravity / sim.vehicle_config.newton_per_cmd)
 
 
 def send_setpoint(sim: SimCrazyflie, roll: float, pitch: float, yawrate: float, thrust: int) -> None:
@@ -75,7 +79,7 @@ def test_take_off_from_the_ground():
     stream(sim, 0.5, thrust=hover_cmd(sim) - 3000)  # too weak: stays on the ground
     assert sim.state[2] == 0.0 and sim.vehicle.on_ground
     stream(sim, 1.0, thrust=48000)
-    a_expected = (48000 * sim.config.vehicle.newton_per_cmd / sim.mass - 9.81)
+    a_expected = (48000 * sim.vehicle_config.newton_per_cmd / sim.mass - 9.81)
     assert sim.state[2] == pytest.approx(0.5 * a_expected * 1.0**2, rel=0.1)  # motor lag costs a little
     assert np.abs(sim.state[:2]).max() < 1e-9
 

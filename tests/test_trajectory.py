@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from cfknode.config import TrajectoryConfig, load_config
-from cfknode.flight.trajectory import RefSamples, make_trajectory
+from cfknode.flight.trajectory import make_trajectory
+from cfknode.kernel.reference import RefSamples
 
 START = np.array([0.1, -0.2, 0.0])
 

@@ -1,0 +1,176 @@
+"""The per-tick control law as one object: ``Controller.step(t, state, reference) -> Command``.
+
+It owns the MPC, the KNODE model slot, the warm start (the previous solution is the next
+tick's linearisation point), the reference preview grid, the geometric fallback, deadline
+handling and the Mellinger layer. The flight loop, replay, the benchmarks, fault injection
+and other people's simulators all call it, so there is one copy of the law.
+
+Observers (the online learner) see each tick once its command has gone out: the caller
+calls ``publish()`` after sending; a caller that never does is covered by ``step``, which
+publishes the previous tick first.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from cfknode.flight.geometric import GeometricGains, geometric_acc
+from cfknode.flight.mellinger import acc_to_setpoint
+from cfknode.flight.model_slot import ModelSlot, linearisation_points
+from cfknode.flight.settings import ControllerConfig
+from cfknode.kernel.reference import RefSamples
+from cfknode.kernel.setpoint import AttitudeSetpoint
+from cfknode.kernel.vehicle import VehicleConfig
+
+
+class State(Protocol):
+    """What the controller needs of a state estimate: world position, velocity, attitude (wxyz)."""
+
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+
+
+class Solver(Protocol):
+    """The MPC's face to the controller (``TranslationalMpc``, or a fault-injecting wrapper)."""
+
+    backend: str
+
+    def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Command:
+    """What one tick decided."""
+
+    acc: np.ndarray  # commanded world acceleration [m/s^2] (the model's input u)
+    setpoint: AttitudeSetpoint  # what cflib's send_setpoint takes
+    source: str  # "mpc" | "fallback" (the MPC failed or was late) | "geometric" (no MPC)
+    status: str  # "ok", the solver's status, or "deadline"
+    solve_s: float  # the MPC's own solve time (0 without an MPC)
+    ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
+
+
+@dataclass(frozen=True)
+class TickInfo:
+    """What one tick saw and decided, for observers (training recorder, dashboard status)."""
+
+    t: float
+    est: Any  # the state estimate (p, v, q); None when there was none
+    ref_p: np.ndarray
+    ref_v: np.ndarray
+    acc: np.ndarray  # commanded world acceleration (the model's input u)
+    setpoint: AttitudeSetpoint
+    source: str  # "mpc" | "fallback" | "geometric" | "blind" | "cutoff" | "stop" | "no_state" | "refused"
+    compute_s: float
+    solve_s: float
+    missed: bool
+    model_version: int
+    supervisor_state: str = ""  # the safety supervisor's state after this tick, when there is one
+
+
+class TickObserver(Protocol):
+    def on_tick(self, tick: TickInfo) -> None: ...
+
+
+class Controller:
+    """MPC (or geometric) position control plus the Mellinger layer, one tick at a time.
+
+    ``settings.kind`` "geometric" flies the geometric controller alone; otherwise ``solver``
+    (built from the settings when None) flies, with ``model``'s KNODE residual when given.
+    ``deadline_s``: an MPC answer slower than this flies the fallback (wall-clock flights;
+    None in lockstep, where computing takes no simulated time).
+    """
+
+    def __init__(
+        self,
+        settings: ControllerConfig,
+        vehicle: VehicleConfig,
+        *,
+        model: ModelSlot | None = None,
+        solver: Solver | None = None,
+        deadline_s: float | None = None,
+    ) -> None:
+        self.settings = settings
+        self.vehicle = vehicle
+        self.model = model
+        if solver is None and settings.kind != "geometric":
+            from cfknode.flight.mpc import TranslationalMpc
+
+            solver = TranslationalMpc(settings, vehicle)
+        self.solver = solver
+        self.deadline_s = deadline_s
+        self.gains = GeometricGains.from_config(settings, vehicle)
+        self.offsets = settings.dt * np.arange(settings.horizon + 1)
+        self.observers: list[TickObserver] = []
+        self._x_pred: np.ndarray | None = None
+        self._u_pred: np.ndarray | None = None
+        self._pending: TickInfo | None = None
+
+    @property
+    def backend(self) -> str:
+        """The solver's name (e.g. ``rti-qrqp-codegen``), or ``geometric``."""
+        return self.solver.backend if self.solver is not None else "geometric"
+
+    def preview_times(self, t: float) -> np.ndarray:
+        """The MPC's node times from ``t``: where the reference is sampled."""
+        return t + self.offsets
+
+    def step(self, t: float, state: State, reference: Any, *, force_fallback: bool = False) -> Command:
+        """The command for time ``t`` from ``state``, tracking ``reference``.
+
+        ``reference`` is anything with ``sample(times) -> RefSamples`` (a trajectory), or
+        ``RefSamples`` already on ``preview_times(t)``. ``force_fallback`` flies the geometric
+        fallback after solving (replay of a tick that missed its deadline in flight), so the
+        warm start stays what it was in flight.
+        """
+        start = time.perf_counter()
+        if self._pending is not None:
+            self.publish()
+        ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
+        acc, ok, solve_s, source, status = self._acceleration(state, ref, force_fallback)
+        setpoint = acc_to_setpoint(acc, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+        command = Command(acc, setpoint, source, status, solve_s, ok)
+        if self.observers:
+            version = self.model.version if self.model is not None else 0
+            self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,
+                                     time.perf_counter() - start, solve_s, False, version)
+        return command
+
+    def publish(self, **tick: Any) -> None:
+        """Show the last tick to the observers; ``tick`` overrides its fields (the loop's
+        ``compute_s``, ``missed``, ``supervisor_state``). Call it once the command is sent."""
+        info, self._pending = self._pending, None
+        if info is None:
+            return
+        if tick:
+            info = dataclasses.replace(info, **tick)
+        for observer in self.observers:
+            observer.on_tick(info)
+
+    def reset(self) -> None:
+        """Forget the warm start (after flying blind, or any gap in the controller's ticks)."""
+        self._x_pred = self._u_pred = None
+
+    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool) -> tuple[np.ndarray, bool, float, str, str]:
+        if self.solver is None:
+            return self._geometric(state, ref), True, 0.0, "geometric", "ok"
+        x0 = np.concatenate((state.p, state.v))
+        residual = None
+        if self.model is not None:
+            residual = self.model.residual(*linearisation_points(x0, ref.a, self._x_pred, self._u_pred))
+        sol = self.solver.solve(x0, ref, residual)
+        self._x_pred, self._u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
+        late = force_fallback or (self.deadline_s is not None and sol.solve_time > self.deadline_s)
+        if sol.ok and not late:
+            return sol.acc, True, sol.solve_time, "mpc", "ok"
+        status = sol.status if not sol.ok else "deadline"
+        return self._geometric(state, ref), False, sol.solve_time, "fallback", status
+
+    def _geometric(self, state: State, ref: RefSamples) -> np.ndarray:
+        return geometric_acc(state.p, state.v, ref.p[0], ref.v[0], ref.a[0], self.gains)

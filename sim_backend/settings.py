@@ -1,0 +1,56 @@
+"""Settings of the simulator: the plant, its scenario events and the injected faults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from cfknode.kernel.vehicle import Vec3
+
+
+@dataclass(frozen=True)
+class MassChange:
+    t: float
+    factor: float
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    seed: int
+    dt: float
+    realtime: bool
+    initial_position: Vec3
+    battery_voltage: float
+    mocap_rate_hz: float
+    mocap_position_noise: float
+    mocap_attitude_noise: float
+    mocap_latency: float
+    mocap_dropout_prob: float
+    mass_changes: tuple[MassChange, ...]
+    wind: Vec3
+    drag: Vec3
+
+
+@dataclass(frozen=True)
+class FaultWindow:
+    t: float
+    duration: float
+
+
+@dataclass(frozen=True)
+class Gust:
+    t: float
+    duration: float
+    wind: Vec3
+
+
+@dataclass(frozen=True)
+class FaultsConfig:
+    mocap_outages: tuple[FaultWindow, ...]
+    radio_outages: tuple[FaultWindow, ...]
+    solver_failures: tuple[FaultWindow, ...]
+    nan_model_at: float
+    battery_drop_at: float
+    battery_drop_to: float
+    gusts: tuple[Gust, ...]
+    sigint_at: tuple[float, ...]
