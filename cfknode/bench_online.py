@@ -1,10 +1,11 @@
-"""``cfknode bench online``: issue 4's acceptance protocol, flown by the whole stack.
+"""``cfknode bench online``: the online-learning acceptance protocol, flown by the whole stack.
 
 Two cells with the paper's mass changes (``cfknode.mass_steps``): the lab circle (0.5 m,
 0.4 m/s, 30 s) and one paper cell (r = 2 m, 0.8 m/s, 8 s). Per cell: the offline KNODE-MPC is
 trained on a flight that saw only the first change, then nominal MPC, offline KNODE-MPC and
-KNODE-MPC-Online fly the same seeded scenario, once per seed. A third cell is DESIGN's lab
-protocol (the same circle, +4.1 % mass at 5 s), against nominal MPC and the geometric controller. Online learning
+KNODE-MPC-Online fly the same seeded scenario, once per seed. A third cell is the lab
+protocol of docs/design.md#targets (the same circle, +4.1 % mass at 5 s), against nominal MPC
+and the geometric controller. Online learning
 runs with honest latency (its trainer's real wall time), so its result varies from run to
 run; the table gives the median and the range over the seeds, and the online/baseline
 ratios of each seed. Flights run one at a time: a second flight on the other core would
@@ -130,7 +131,7 @@ NAMES = {"nominal": "nominal MPC", "offline": "offline KNODE-MPC", "geometric": 
 
 def markdown(reports: list[CellReport], command: str, version: str) -> str:
     lines = [
-        "## Online learning (issue 4 protocol)",
+        "## Online learning (acceptance protocol)",
         "",
         f"`{command}`, cfknode {version}. MSE in m^2 on the pattern (mean over the axes): median over the "
         "seeds, [min, max] in brackets; ratios are online over the baseline, seed by seed.",

@@ -1,7 +1,7 @@
 """Geometric (Mellinger) position controller, as an acceleration command.
 
 It is the paper's third baseline and the fallback that flies any tick where the MPC
-fails. The firmware's Mellinger position loop acts in newtons (HF 2.1); dividing its
+fails. The firmware's Mellinger position loop acts in newtons (docs/hardware.md#mellinger); dividing its
 gains by the mass gives the same loop expressed as acceleration, which the shared
 Mellinger attitude layer then turns into a setpoint exactly as it does for the MPC.
 """

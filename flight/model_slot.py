@@ -1,6 +1,6 @@
 """The KNODE residual the MPC predicts with, linearised once per tick (lin-RTI).
 
-The networks stay out of the CasADi graph (solver-timings.md): each tick the queue is
+The networks stay out of the CasADi graph (docs/solver-timings.md#networks-outside-casadi): each tick the queue is
 evaluated with its Jacobians in batched numpy at the previous solution's nodes, and the
 affine result becomes the MPC's per-stage parameters. Swapping a model is one reference
 assignment between ticks, so it never rebuilds or recompiles the solver.

@@ -10,7 +10,7 @@ interval of ``dt`` is integrated by RK4 with ``substeps`` steps (the paper's
 Without a residual the problem is an SX graph solved by IPOPT with its exact Hessian.
 
 With a residual, the network never enters the CasADi graph: a three-network queue inside
-it costs about 1.4 s per IPOPT solve (``solver-timings.md``), and linearising it at every
+it costs about 1.4 s per IPOPT solve (docs/solver-timings.md#full-model-mpc), and linearising it at every
 RK4 stage point as solver parameters still leaves a 5e6-instruction Hessian.  Instead
 the interval defects x_{k+1} - F(x_k, u_k) are a CasADi ``Callback`` computed in numpy:
 RK4 of the true hybrid model for all N intervals at once, with forward-mode sensitivities

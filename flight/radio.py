@@ -2,16 +2,17 @@
 
 The loop writes the newest ``AttitudeSetpoint`` and mocap pose into slots; the radio
 transmits the newest setpoint at ``tx_rate_hz`` (the firmware keeps only the latest, and
-one Crazyradio carries about 500 packets/s: HF 1.8) and forwards each new pose as an
-extpose. Two ways to drive it:
+one Crazyradio carries about 500 packets/s: docs/hardware.md#radio-budget) and forwards
+each new pose as an extpose. Two ways to drive it:
 
 - ``lockstep=True``: nothing runs in the background; the loop calls ``pump(now)`` every
   tick and the packets go out in that call, stamped with the simulator's time.
 - ``lockstep=False``: a TX thread sends on the wall clock, so cflib's blocking
   ``send_packet`` (up to 2 s on a bad link) never runs on the event-loop thread.
 
-``heartbeat_hz > 0`` also sends the emergency-stop-watchdog heartbeat (HF 5) on the same
-schedule owner, when the firmware has the supervisor port (protocol >= 12).
+``heartbeat_hz > 0`` also sends the emergency-stop-watchdog heartbeat
+(docs/hardware.md#emergency-stop) on the same schedule owner, when the firmware has the
+supervisor port (protocol >= 12).
 
 ``HardwareRadio`` adds what a real Crazyflie needs before and during flight: parameters
 (Kalman estimator, PID attitude controller, extpose noise), a telemetry log block
@@ -39,7 +40,7 @@ if TYPE_CHECKING:
     from cfknode.kernel.setpoint import AttitudeSetpoint
 
 _TIME_EPS = 1e-9  # s; tick times built as k * period must not miss a TX slot to rounding
-SUPERVISOR_PROTOCOL = 12  # CRTP protocol with the supervisor port and its emergency-stop watchdog (HF 5)
+SUPERVISOR_PROTOCOL = 12  # supervisor port and its e-stop watchdog (docs/hardware.md#emergency-stop)
 
 
 class RadioError(RuntimeError):
@@ -167,7 +168,8 @@ class CflibRadio:
             self._close_link(cf)
             raise
         self._hb_enabled = self._hb_period > 0 and self.protocol_version >= SUPERVISOR_PROTOCOL
-        # The firmware ignores thrust until it has seen a zero-thrust RPYT packet (HF 1.2).
+        # The firmware ignores thrust until it has seen a zero-thrust RPYT packet
+        # (docs/hardware.md#unlock).
         self._send_setpoint((0.0, 0.0, 0.0, 0), self._clock())
         if not self.lockstep:
             self._tx_thread = threading.Thread(target=self._tx_loop, name=f"radio-tx {self.uri}", daemon=True)
@@ -320,7 +322,8 @@ class CflibRadio:
             self._hand_back()
 
     def _hand_back(self) -> None:
-        """Leave the firmware safe: motors off, and the watchdog satisfied (HF 1.3)."""
+        """Leave the firmware safe: motors off, and the watchdog satisfied
+        (docs/hardware.md#commander-watchdog)."""
         cf = self._cf
         zero = (0.0, 0.0, 0.0, 0)
         for i in range(self._zero_count):
@@ -385,12 +388,13 @@ def _first_line(message: str) -> str:
 
 # --- the hardware radio ------------------------------------------------------------------------
 
-# Parameters the flight stack relies on (HF 1.4, 1.6, 6): the onboard Kalman filter fuses the
-# extposes, so the firmware's yaw is the mocap's (the attitude layer decomposes the thrust in
-# that yaw); the default PID attitude controller flies RPYT setpoints.
+# Parameters the flight stack relies on (docs/hardware.md#extpose, #parameters): the onboard
+# Kalman filter fuses the extposes, so the firmware's yaw is the mocap's (the attitude layer
+# decomposes the thrust in that yaw); the default PID attitude controller flies RPYT setpoints.
 ESTIMATOR_KALMAN = 2
 CONTROLLER_PID = 1
-# Crazyswarm2's status block (HF 1.5): one log block, 4 + 1 + 2 + 1 = 8 bytes of the 26.
+# Crazyswarm2's status block (docs/hardware.md#logging): one log block, 4 + 1 + 2 + 1 = 8 bytes
+# of the 26.
 TELEMETRY_VARIABLES = (("pm.vbat", "float"), ("pm.state", "int8_t"), ("supervisor.info", "uint16_t"),
                        ("radio.rssi", "uint8_t"))
 
@@ -401,7 +405,7 @@ class Telemetry:
 
     vbat: float  # V, under the current load
     pm_state: int  # 0 battery, 1 charging, 2 charged, 3 lowPower, 4 shutDown
-    supervisor_info: int  # bitfield (HF 5)
+    supervisor_info: int  # bitfield (docs/hardware.md#supervisor)
     rssi: int  # dBm, magnitude
     firmware_ms: int  # the firmware's log timestamp
     received: float
@@ -608,7 +612,8 @@ class HardwareRadio(CflibRadio):
         if self._heartbeats_sent == 0:
             return
         # The firmware's emergency-stop watchdog, once armed, stays armed until a reboot: with
-        # the heartbeat gone it stops and Locks the drone 1 s later, landed or not (HF 5).
+        # the heartbeat gone it stops and Locks the drone 1 s later, landed or not
+        # (docs/hardware.md#emergency-stop).
         if not self._reboot_after_heartbeat:
             self.handback_note = ("the emergency-stop watchdog is armed: the Crazyflie locks 1 s after the "
                                   "last heartbeat; power-cycle it before the next flight")

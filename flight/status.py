@@ -103,7 +103,7 @@ class FlightStatus:
         self.command_source = ""
         self.missed_deadlines = 0
         self.fallbacks = 0
-        # Safety supervisor (issue 6); "n/a" until one exists.
+        # Safety supervisor; "n/a" until one exists.
         self.supervisor_state = "n/a"
         # Sensors and link (usually from pollers).
         self.mocap_rate_hz = math.nan
@@ -116,7 +116,7 @@ class FlightStatus:
         self.link_lost: str | None = None
         self.battery_v = math.nan
         self.geofence_margin_m = math.nan  # distance to the hard fence, m (< 0: outside)
-        # Online learning (issue 4).
+        # Online learning.
         self.models: tuple[ModelEntry, ...] = ()
         self.model_version: int | None = None
         self.model_swaps = 0

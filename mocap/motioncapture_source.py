@@ -2,7 +2,7 @@
 
 A reader thread calls ``waitForNextFrame()`` and turns the rigid body named like the robot
 into a ``Pose`` stamped with the host's monotonic clock when the frame arrived (the Python
-bindings expose no SDK timestamp: HF 3.1), shifted onto the flight clock. A frame without
+bindings expose no SDK timestamp: docs/hardware.md#mocap), shifted onto the flight clock. A frame without
 the body (occluded: the SDKs silently omit it) counts as a dropout. The quaternion comes as
 ``.w .x .y .z`` attributes and is stored scalar-first.
 
@@ -41,7 +41,7 @@ from cfknode.mocap.source import MocapStats, Pose, RateMeter
 
 MOCAP_TYPES = ("vicon", "optitrack", "qualisys", "vrpn", "mock")
 SDK_TYPES = ("vicon", "optitrack", "qualisys", "vrpn")
-# Crazyswarm2 warns when the mocap rate leaves this band (server.yaml, HF 3.1).
+# Crazyswarm2 warns when the mocap rate leaves this band (server.yaml; docs/hardware.md#mocap).
 RATE_BAND_HZ = (80.0, 120.0)
 RATE_CHECK_PERIOD = 1.0  # s between rate checks in the reader thread
 _WAIT_POLL = 0.2  # s: how often a blocked wait on the child pipe looks at the stop flag
@@ -58,7 +58,7 @@ def motioncapture_config(
     mocap_type: str, host: str, *, mock_bodies: Mapping[str, tuple[float, ...]] | None = None,
     mock_rate_hz: float = 100.0,
 ) -> dict[str, str]:
-    """The string dict ``motioncapture.connect`` takes (``src/motioncapture.cpp`` keys, HF 3.1).
+    """The string dict ``motioncapture.connect`` takes (``src/motioncapture.cpp`` keys; docs/hardware.md#mocap).
 
     ``host`` may carry a port (``vicon``: ``host:801``, the SDK parses it; ``qualisys``: it
     becomes the ``port`` key). ``mock`` ignores the host and serves ``mock_bodies``

@@ -7,7 +7,7 @@ physical scales) and writes the derivative rows ``rows`` (scaled back by ``outpu
 Two layouts are used by the paper benchmark:
 
 - ``ResidualLayout.paper()``: the authors' 17 -> 64 -> 13 on all 13 derivatives with raw
-  inputs (absolute position included), as in their code (``paper-code-notes.md`` section 4);
+  inputs (absolute position included), as in their code (docs/paper-code.md#knode);
 - ``ResidualLayout.default()``: cfknode's (v, q, w, u) -> 64 -> (v', w'), normalised,
   translation invariant, never touching the exact kinematic rows p' = v and q'.
 
@@ -355,7 +355,8 @@ def train_newest(queue: RigidBodyQueue, pairs: OneStepPairs, settings: TrainSett
     """Train the newest network of ``queue`` in place with full-batch Adam (the others frozen)."""
     if not queue.networks:
         raise ValueError("push() a network before training")
-    # Two threads on a shared 2-core machine slowed small batches 4-80x (solver-timings.md).
+    # Two threads on a shared 2-core machine slowed small batches 4-80x
+    # (docs/solver-timings.md#training).
     torch.set_num_threads(1)
     start = time.perf_counter()
     newest = queue.networks[-1]

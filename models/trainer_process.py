@@ -118,7 +118,8 @@ def trainer_main(conn: Connection, settings: TrainerSettings) -> None:
     """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF."""
     import torch
 
-    # One thread: two on these shared 2-core machines slowed small batches 4-80x (solver-timings.md),
+    # One thread: two on these shared 2-core machines slowed small batches 4-80x
+    # (docs/solver-timings.md#training),
     # and the other core is the flight loop's.
     torch.set_num_threads(1)
     start = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Host-side safety (issue 6; DESIGN 6): the firmware has no geofence, mocap-loss or battery landing.
+"""Host-side safety (docs/design.md#safety): the firmware has no geofence, mocap-loss or battery landing.
 
 - ``supervisor``: the flight's state machine and the radio's only gate (``Supervisor``).
 - ``geofence``: the box, its soft margin and the reference clamp.

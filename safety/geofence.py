@@ -1,6 +1,7 @@
 """The geofence: a world-frame box with a soft margin inside it and a stop distance outside.
 
-Three nested regions (HF 5: the firmware has no geofence, so the host keeps one on the mocap pose):
+Three nested regions (the firmware has no geofence, so the host keeps one on the mocap pose:
+docs/hardware.md#host-safety):
 
 - the *soft box* (the box shrunk by ``margin``, except at the floor): every reference is
   clamped into it, so the controller never aims at the fence itself;

@@ -8,7 +8,7 @@
   voltage. The motors' power comes from momentum theory, ``P = F^1.5 / sqrt(2 rho A)`` per
   rotor, divided by an overall efficiency fitted so that a 29 g Crazyflie 2.1 hovers on about
   2 A (250 mAh lasts ~7 min), which also gives the typical ~0.3 V sag from idle to hover.
-- The firmware compensates thrust for the battery voltage (HF 2.1), so the voltage does not
+- The firmware compensates thrust for the battery voltage (docs/hardware.md#thrust-map), so the voltage does not
   feed back into the motor forces here.
 """
 

@@ -6,7 +6,7 @@ fault-free and the flight path is the one that flies on hardware:
 - radio outages: the simulator's firmware behind a proxy that loses every packet from the
   host (``on_*`` inputs) inside the windows. As cflib's radio driver does, 100 lost packets
   in a row end the link for good ("Too many packets lost"): from then on nothing arrives,
-  and the firmware's own watchdog takes over (HF 1.3). ``link_status`` is what the host's
+  and the firmware's own watchdog takes over (docs/hardware.md#commander-watchdog). ``link_status`` is what the host's
   link statistics would show: the silence since the last acknowledged packet, and the loss.
 - gusts: a ``Vehicle`` whose wind follows the gust schedule (it acts through ``sim.drag``).
 - battery drop: the cell's open-circuit voltage falls to a value at a time (a failing cell);

@@ -6,7 +6,7 @@ Replies (handshake, ping echoes, TOC items, log data) go into a queue that cflib
 receive thread drains through ``receive_packet``.
 
 The packet formats follow cflib 0.1.34 and the firmware's CRTP services
-(hardware-facts 1.2-1.9). cflib instantiates link drivers itself, with no arguments
+(docs/hardware.md, #rpyt-setpoint to #sim-link). cflib instantiates link drivers itself, with no arguments
 (``cflib.crtp.get_link_driver``), so the URI -> simulator map has to be module state.
 """
 
@@ -27,7 +27,7 @@ from cflib.crtp.crtpstack import CRTPPacket
 from cflib.crtp.exceptions import CommunicationException, WrongUriType
 
 SCHEME = "sim://"
-PROTOCOL_VERSION = 12  # >= 12: supervisor port and non-legacy generic setpoints (HF 1.9)
+PROTOCOL_VERSION = 12  # >= 12: supervisor port and non-legacy generic setpoints (docs/hardware.md#sim-link)
 PLATFORM_MAGIC = b"Bitcraze Crazyflie"
 # A simulated link has no path loss; report what a Crazyradio sees a metre or two away.
 SIM_RSSI = 35
@@ -69,7 +69,7 @@ _PARAM_MISC_SET_BY_NAME = 0
 _PARAM_MISC_DEFAULT_V2 = 8
 
 PM_BATTERY, PM_LOW_POWER = 0, 3  # pm.state values (no charger in flight)
-PM_LOW_TIMEOUT_S = 5.0  # firmware: sustained low voltage before lowPower (HF section 5)
+PM_LOW_TIMEOUT_S = 5.0  # firmware: sustained low voltage before lowPower (docs/hardware.md#battery)
 
 _LOG_MAX_BLOCKS = 16  # firmware LOG_MAX_BLOCKS
 _LOG_MAX_PAYLOAD = 26  # firmware LOG_MAX_LEN
@@ -120,7 +120,7 @@ class ParamDefinition:
     read_only: bool = False
 
 
-# Supervisor bits (HF section 5): the sim auto-arms like a CF2.1 and has no HL planner state.
+# Supervisor bits (docs/hardware.md#supervisor): the sim auto-arms like a CF2.1 and has no HL planner state.
 _CAN_BE_ARMED, _ARMED, _AUTO_ARM, _CAN_FLY, _FLYING, _LOCKED = 1, 2, 4, 8, 16, 64
 _SUPERVISOR_BITS = {
     "idle": _CAN_BE_ARMED | _ARMED | _AUTO_ARM | _CAN_FLY,
@@ -153,7 +153,7 @@ def _rssi(endpoint: "_Endpoint") -> float:
     return SIM_RSSI
 
 
-# What a flight host logs (Crazyswarm2's status topic: HF 1.5).
+# What a flight host logs (Crazyswarm2's status topic: docs/hardware.md#logging).
 LOG_TOC: tuple[LogVariable, ...] = (
     LogVariable("pm", "vbat", 0x07, _battery_voltage),
     LogVariable("pm", "state", 0x04, _pm_state),
@@ -161,8 +161,9 @@ LOG_TOC: tuple[LogVariable, ...] = (
     LogVariable("radio", "rssi", 0x01, _rssi),
 )
 
-# Parameters a host sets or reads before flight (HF 1.4, 1.6, 5). The simulated firmware
-# has one estimator and the PID attitude controller, so these are stored and echoed only.
+# Parameters a host sets or reads before flight (docs/hardware.md#extpose, #parameters,
+# #battery). The simulated firmware has one estimator and the PID attitude controller, so
+# these are stored and echoed only.
 PARAM_TOC: tuple[ParamDefinition, ...] = (
     ParamDefinition("stabilizer", "estimator", 0x08, 1),
     ParamDefinition("stabilizer", "controller", 0x08, 1),
@@ -248,7 +249,7 @@ class _Endpoint:
     def _on_step(self, t: float, state: Any) -> None:
         if not self.active:
             return
-        # Firmware pm task: below pm.lowVoltage for PM_LOW_TIMEOUT_S -> lowPower (HF section 5).
+        # Firmware pm task: below pm.lowVoltage for PM_LOW_TIMEOUT_S -> lowPower (docs/hardware.md#battery).
         if self.sim.battery_voltage < self.param_values[self._low_voltage_index]:
             if self._low_since is None:
                 self._low_since = t

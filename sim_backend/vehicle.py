@@ -6,7 +6,7 @@ lag. The whole state is integrated with classical RK4 at a fixed step (``sim.dt`
 motor commands held over the step (the firmware updates them at 500 Hz), and the
 quaternion renormalised after every step.
 
-Geometry (X configuration, firmware legacy mixer numbering, HF 2.1), body FLU:
+Geometry (X configuration, firmware legacy mixer numbering: docs/hardware.md#mixer), body FLU:
 
     m4 front-left (+d, +d)      m1 front-right (+d, -d)
     m3 back-left  (-d, +d)      m2 back-right  (-d, -d)          d = arm_length / sqrt(2)
@@ -37,7 +37,7 @@ from cfknode.sim_backend.scenario import drag_force
 FLOATS = Backend(unpack=lambda x, n: x, stack=lambda xs: xs)
 
 CMD_MAX = 65535
-# Firmware motors.c: a motor asked for less than THRUST_MIN per motor is switched off (HF 2.1).
+# Firmware motors.c: a motor asked for less than THRUST_MIN per motor is switched off (docs/hardware.md#thrust-map).
 THRUST_MIN = 0.0128  # N
 
 

@@ -1,4 +1,5 @@
-"""Issue 4's acceptance on the paper's cell, flown by the whole stack, and `cfknode bench online`'s report."""
+"""The online-learning acceptance protocol on the paper's cell, flown by the whole stack,
+and `cfknode bench online`'s report."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ def test_defaults_load_and_are_frozen():
 
 def test_vehicle_thrust_facts():
     v = load_config().vehicle
-    # HF 2.1: F_total ~ cmd * 7.32e-6 N, and hover at 29 g needs about 38,800.
+    # docs/hardware.md#thrust-map: F_total ~ cmd * 7.32e-6 N, and hover at 29 g needs about 38,800.
     assert v.newton_per_cmd == pytest.approx(7.32e-6, rel=2e-3)
     assert v.mass * v.gravity / v.newton_per_cmd == pytest.approx(38_800, rel=0.01)
     assert v.max_thrust / (v.mass * v.gravity) == pytest.approx(1.5, abs=0.06)

@@ -1,4 +1,5 @@
-"""Mellinger layer: signs (HF 1.2), hover thrust (HF 2.1), tilt and thrust clamps, yaw rate."""
+"""Mellinger layer: signs, hover thrust (docs/hardware.md#rpyt-setpoint, #thrust-map), tilt and
+thrust clamps, yaw rate."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def test_hover_is_level_at_the_hover_command():
     assert s.roll_deg == 0.0 and s.pitch_deg == 0.0 and s.yawrate_deg == 0.0
     assert isinstance(s.thrust, int)
     assert s.thrust == round(VEH.mass * G / VEH.newton_per_cmd)
-    assert 38_700 <= s.thrust <= 38_900  # HF 2.1: ~38,800 at 29 g
+    assert 38_700 <= s.thrust <= 38_900  # ~38,800 at 29 g (docs/hardware.md#thrust-map)
 
 
 def test_plus_x_gives_positive_pitch():

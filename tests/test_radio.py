@@ -226,7 +226,7 @@ def test_flies_the_real_simulator_and_hands_it_back_unlocked() -> None:
         fw = sim.firmware
         assert not fw.thrust_locked  # the unlock arrived
         # Climb with +pitch and +roll: cflib's pitch is right-handed (nose down -> +x) and
-        # +roll is right side down (-> -y) (HF 1.2), through cflib, the wire and the firmware.
+        # +roll is right side down (-> -y) (docs/hardware.md#rpyt-setpoint), through cflib, the wire and the firmware.
         period = 1.0 / cfg.controller.rate_hz
         for k in range(int(round(0.8 / period))):
             t = k * period

@@ -43,7 +43,7 @@ def test_command_to_force_is_linear_with_motor_cutoff_and_clamps():
     cutoff_cmd = THRUST_MIN / fmax * CMD_MAX  # ~6990
     assert command_to_force(cutoff_cmd - 1.0, fmax) == 0.0
     assert command_to_force(cutoff_cmd + 1.0, fmax) == pytest.approx((cutoff_cmd + 1.0) / CMD_MAX * fmax)
-    # HF 2.1: about 38,800 holds a 29 g vehicle.
+    # docs/hardware.md#thrust-map: about 38,800 holds a 29 g vehicle.
     cfg = load_config()
     hover_cmd = force_to_cmd(cfg, hover_force(cfg))
     assert 38500 < hover_cmd < 39100

@@ -1,6 +1,6 @@
 """The benchmark's controllers and learners, in the two formulations.
 
-``Formulation.paper()`` is the authors' code (``paper-code-notes.md`` sections 3-5):
+``Formulation.paper()`` is the authors' code (docs/paper-code.md#mpc, #knode, #online-loop):
 unit weights on raw SI units, a constant-point reference (the reference at t + 2 ms held
 over the 1 s horizon), a 17 -> 64 -> 13 residual on all 13 derivatives with raw inputs,
 fresh networks trained 80 Adam steps on one 0.15 s window, and the lockstep in which the
@@ -195,7 +195,7 @@ def model_hover_thrust(
 
 @dataclass(frozen=True)
 class GeometricGains:
-    """SE(3) gains found pickled in the authors' offline model (paper-code-notes.md section 6)."""
+    """SE(3) gains found pickled in the authors' offline model (docs/paper-code.md#baselines)."""
 
     kp: tuple[float, float, float] = (20.0, 20.0, 20.0)  # 1/s^2 (times the mass: N/m)
     kd: tuple[float, float, float] = (8.9443, 8.9443, 8.9443)
@@ -273,7 +273,7 @@ def _physics(vehicle: CrazyflieParams) -> Physics:
 
 
 class LockstepLearner:
-    """The paper's online loop as its code runs it (paper-code-notes.md section 5).
+    """The paper's online loop as its code runs it (docs/paper-code.md#online-loop).
 
     Rows [x after step k, u_k] are collected from ``collect_from``; when a window of ``t_col``
     closes, the simulation waits while a fresh network is pushed onto the queue and trained

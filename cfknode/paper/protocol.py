@@ -1,7 +1,7 @@
 """The paper's simulation protocol (Table 1): plant, actuators, reference, mass events and metric.
 
-Everything here follows ``paper-code-notes.md`` sections 2, 5 and 7 (what the authors'
-code does), written afresh:
+Everything here follows what the authors' code does (docs/paper-code.md#plant, #online-loop
+and #metric), written afresh:
 
 - plant: the 13-state Crazyflie rigid body at 500 Hz, integrated per 2 ms step by one
   Dormand-Prince 5(4) step (what ``scipy.integrate.solve_ivp(RK45, first_step=dt)`` does

@@ -1,6 +1,6 @@
 """Tables, JSON and the Fig. 2 plot for ``cfknode bench paper``.
 
-The published values are Table 1 of the paper (``shared/paper``), as printed.  The paper's
+The published values are Table 1 of the paper, as printed.  The paper's
 "outperforms by X %" is the relative difference of the averages over the nine runs
 (58.8 % and 53.3 % for KNODE-MPC and geometric follow exactly from the printed rows that
 way; its 18.6 % for MPC does not: the printed rows give 24.7 %).

@@ -1,6 +1,6 @@
 """One closed-loop run of the paper's protocol: a controller, a formulation, a cell -> MSE and timings.
 
-The loop is the authors' (``paper-code-notes.md`` sections 1, 2 and 7): at plant step k
+The loop is the authors' (docs/paper-code.md#online-loop, #plant and #metric): at plant step k
 (t = k dt, 500 Hz) the controller acts every 25th step on the state at t with the reference
 at t + dt, the rotors clip its output, the plant advances one step with it held, and mass
 events apply after their step.  The metric pairs the state at t with the reference at

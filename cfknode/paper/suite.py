@@ -147,7 +147,7 @@ def execute(plan: BenchPlan, task: Task, offline: QueueWeights | None) -> RunRes
 
 def _single_thread() -> None:
     # One thread per worker: two workers share two cores, and torch's or BLAS's own threads on
-    # top oversubscribed them (training rounds up to 80x slower, solver-timings.md).
+    # top oversubscribed them (training rounds up to 80x slower, docs/solver-timings.md#training).
     import torch
 
     torch.set_num_threads(1)
