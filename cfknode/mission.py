@@ -29,7 +29,7 @@ from cfknode.flight.radio import CflibRadio
 from cfknode.flight.summary import FlightSummary, compute_summary
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.flight.status import StatusTap
-from cfknode.safety.operator import EstopMailbox, mailbox_dir
+from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
 from cfknode.safety.watchdogs import radio_link_status, worst_link
 
@@ -139,8 +139,38 @@ def run_flight(
         model = ModelSlot(None)  # nominal until the injected model is swapped in
     mpc = build_controller(flight_cfg)  # built (and compiled) before the clock starts
     # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
-    with start_trainer(flight_cfg) as trainer, session as sess:
-        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer)
+    # The e-stop mailbox first: a second flight of a flying robot is refused before anything connects.
+    with estop_mailbox(cfg, flight_cfg) as estop, start_trainer(flight_cfg) as trainer, session as sess:
+        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
+                            estop)
+
+
+def estop_name(cfg: Config) -> str:
+    """The name ``cfknode estop --robot`` knows the flight by: the robot on hardware; in
+    simulation ``sim-<robot>``, so a simulated flight is never taken for (or blocks) a real one."""
+    return cfg.hardware.robot if cfg.backend == "cf" else f"sim-{cfg.hardware.robot}"
+
+
+@contextlib.contextmanager
+def estop_mailbox(cfg: Config, flight_cfg: Config) -> Iterator[EstopMailbox]:
+    """The flight's e-stop mailbox, open (announced) for the block.
+
+    A robot on a real radio is exclusive: a second flight of it is a MissionError (exit status 1;
+    it is not bad input, the same command works once the other flight has ended). A mailbox
+    directory that cannot be made or that others can write to is a ConfigError (exit status 2).
+    """
+    box = EstopMailbox(mailbox_dir(cfg.safety.estop_dir), estop_name(cfg),
+                       exclusive=not flight_cfg.radio.uri.startswith("sim://"))
+    try:
+        box.open()
+    except FlightRunning as exc:
+        raise MissionError(f"take-off refused: {exc}") from None
+    except MailboxError as exc:
+        raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
+    try:
+        yield box
+    finally:
+        box.close()
 
 
 def _fly_session(
@@ -153,6 +183,7 @@ def _fly_session(
     on_supervisor: Callable[[Supervisor], None] | None,
     dashboard: Any,
     trainer: Any,
+    estop: EstopMailbox | None = None,
 ) -> FlightResult:
     from cfknode.online_wiring import online_session
 
@@ -193,7 +224,7 @@ def _fly_session(
                     *([status] if status is not None else []),
                     *sess.fault_observers(model),
                 ],
-                estop=EstopMailbox(mailbox_dir(cfg.safety.estop_dir), cfg.hardware.robot),
+                estop=estop,
             )
             if on_supervisor is not None:
                 on_supervisor(supervisor)

@@ -4,6 +4,7 @@
 - ``geofence``: the box, its soft margin and the reference clamp.
 - ``landing``: the supervisor's own landing reference.
 - ``watchdogs``: persistence timers, battery filter, tilt, radio link health.
-- ``operator``: Ctrl-C, the ``cfknode estop`` mailbox.
+- ``operator``: Ctrl-C, and the task that hands ``cfknode estop`` requests to the supervisor.
+- ``estop_mailbox``: the ``cfknode estop`` mailbox: flight identity, presence, requests.
 - ``preflight``: hardware pre-flight checks before the clock starts.
 """

@@ -3,29 +3,27 @@
 - SIGINT: installed with ``loop.add_signal_handler`` on the flight's own event loop, so the
   handler runs between ticks as an ordinary callback (never inside a tick), and the previous
   handler is put back when the flight ends. First Ctrl-C lands, the second stops the motors.
-- The e-stop mailbox: a directory (``$XDG_RUNTIME_DIR/cfknode``, else the cache directory)
-  where a flight announces itself with ``flight-<robot>.json`` and ``cfknode estop --robot NAME``
-  drops ``estop-<robot>.json``. A small task on the flight's event loop looks for that file
-  20 times a second, between ticks (a file-system call releases the GIL, and getting it back
-  can cost a tick tens of microseconds), hands it to the supervisor and deletes it, which
-  is the acknowledgement the command waits for. Files, not a socket: nothing to serve,
-  nothing to clean up after a crash but two small files, which the next flight replaces.
+- The e-stop mailbox (``estop_mailbox``): the flight announces itself in a private directory
+  and ``cfknode estop`` leaves a request file addressed to that one flight. A small task on
+  the flight's event loop looks for it 20 times a second, between ticks (a file-system call
+  releases the GIL, and getting it back can cost a tick tens of microseconds), hands it to
+  the supervisor and deletes it, which is the acknowledgement the command waits for. Files,
+  not a socket: nothing to serve, and a crash leaves only small files that no live flight reads.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
-import os
-import re
 import signal
-import time
-from pathlib import Path
 from typing import Any, Callable, Iterator, Protocol
 
-ACTIONS = ("stop", "land")
-_SAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+from cfknode.safety.estop_mailbox import EstopMailbox, describe_error, mailbox_dir
+
+__all__ = ["EstopMailbox", "estop_watch", "mailbox_dir", "sigint_handler"]
+
+# A flood guard: after this many distinct mailbox errors in one flight, the rest are not logged.
+MAX_REPORTED_ERRORS = 20
 
 
 class Interruptible(Protocol):
@@ -37,86 +35,7 @@ class Stoppable(Protocol):
 
     def request_stop(self, reason: str, cause: str) -> None: ...
 
-
-def mailbox_dir(configured: str = "") -> Path:
-    """The e-stop mailbox directory: ``configured``, else ``$XDG_RUNTIME_DIR/cfknode``, else
-    ``$XDG_CACHE_HOME/cfknode/estop`` (``~/.cache/cfknode/estop``)."""
-    if configured:
-        return Path(configured).expanduser()
-    runtime = os.environ.get("XDG_RUNTIME_DIR")
-    if runtime:
-        return Path(runtime) / "cfknode"
-    cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(cache) / "cfknode" / "estop"
-
-
-class EstopMailbox:
-    """The flight's side and the command's side of the e-stop files for one robot."""
-
-    def __init__(self, directory: Path, robot: str) -> None:
-        name = _SAFE.sub("_", robot).strip("._") or "robot"
-        self.directory = Path(directory)
-        self.robot = robot
-        self.request_path = self.directory / f"estop-{name}.json"
-        self.presence_path = self.directory / f"flight-{name}.json"
-
-    # --- the flight's side -------------------------------------------------------------------
-
-    def open(self) -> bool:
-        """Announce the flight and drop a stale request; True if there was one."""
-        self.directory.mkdir(parents=True, exist_ok=True)
-        stale = self.request_path.exists()
-        self.request_path.unlink(missing_ok=True)
-        _write_atomic(self.presence_path, {"pid": os.getpid(), "robot": self.robot, "started": time.time()})
-        return stale
-
-    def poll(self) -> str | None:
-        """The pending action ("stop" or "land"), consumed (the file is deleted), or None."""
-        try:
-            with open(self.request_path, "rb") as f:
-                raw = f.read()
-        except FileNotFoundError:
-            return None
-        self.request_path.unlink(missing_ok=True)
-        try:
-            action = json.loads(raw).get("action")
-        except (ValueError, AttributeError):
-            action = None
-        # Anything unreadable is treated as the stronger action: it was meant as an e-stop.
-        return action if action in ACTIONS else "stop"
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self.presence_path.unlink(missing_ok=True)
-
-    # --- the command's side ------------------------------------------------------------------
-
-    def flight_pid(self) -> int | None:
-        """The pid of the running flight of this robot, or None (no file, or its process is gone)."""
-        try:
-            pid = int(json.loads(self.presence_path.read_text())["pid"])
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-        return pid if _alive(pid) else None
-
-    def post(self, action: str) -> None:
-        """Leave ``action`` ("stop" or "land") for the flight, without waiting."""
-        if action not in ACTIONS:
-            raise ValueError(f"e-stop action must be one of {ACTIONS}, got {action!r}")
-        self.directory.mkdir(parents=True, exist_ok=True)
-        _write_atomic(self.request_path, {"action": action, "pid": os.getpid(), "time": time.time()})
-
-    def request(self, action: str, timeout: float = 2.0, poll_s: float = 0.01) -> bool:
-        """``post`` and wait until the flight takes it; False (and the request withdrawn) if
-        nobody took it within ``timeout`` seconds."""
-        self.post(action)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if not self.request_path.exists():
-                return True
-            time.sleep(poll_s)
-        self.request_path.unlink(missing_ok=True)
-        return False
+    def note(self, level: str, text: str, source: str) -> None: ...
 
 
 @contextlib.contextmanager
@@ -144,43 +63,51 @@ def sigint_handler(target: Interruptible) -> Iterator[bool]:
 @contextlib.contextmanager
 def estop_watch(target: Stoppable, mailbox: EstopMailbox | None, period: float = 0.05) -> Iterator[None]:
     """While the block runs: the flight is announced in ``mailbox`` and a task on the running
-    event loop hands each ``cfknode estop`` request to ``target``. Nothing without a mailbox."""
+    event loop hands each ``cfknode estop`` request to ``target``. Nothing without a mailbox.
+
+    A mailbox opened by the caller (before take-off, where a refusal is still harmless) stays
+    the caller's to close; one opened here is closed here.
+    """
     if mailbox is None:
         yield
         return
+    opened_here = not mailbox.is_open
     mailbox.open()
     task = asyncio.get_running_loop().create_task(_watch(target, mailbox, period))
     try:
         yield
     finally:
         task.cancel()
-        mailbox.close()
+        if opened_here:
+            mailbox.close()
 
 
 async def _watch(target: Stoppable, mailbox: EstopMailbox, period: float) -> None:
+    """Poll until cancelled. No error ends it: a dead watcher would leave the flight without
+    its e-stop, so each distinct error is logged once as a safety event and polling goes on."""
+    reported: set[str] = set()
+
+    def report(level: str, text: str) -> None:
+        if text in reported or len(reported) > MAX_REPORTED_ERRORS:
+            return
+        reported.add(text)
+        if len(reported) > MAX_REPORTED_ERRORS:
+            text = f"more than {MAX_REPORTED_ERRORS} distinct e-stop mailbox errors: no more are logged"
+        target.note(level, f"e-stop mailbox: {text}", "estop")
+
     while True:
         await asyncio.sleep(period)
-        action = mailbox.poll()
-        if action is None:
-            continue
-        reason = f"cfknode estop --robot {mailbox.robot}" + (" --land" if action == "land" else "")
-        if action == "land":
-            target.request_land(reason, "estop_land")
-        else:
-            target.request_stop(reason, "estop_stop")
-
-
-def _write_atomic(path: Path, payload: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(payload))
-    os.replace(tmp, path)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # exists, owned by someone else
-    return True
+        try:
+            request = mailbox.poll()
+            if request is None:
+                continue
+            if request.note:
+                report("warning", request.note)
+            reason = f"cfknode estop --robot {mailbox.robot}" + (" --land" if request.action == "land" else "")
+            if request.action == "land":
+                target.request_land(reason, "estop_land")
+            else:
+                target.request_stop(reason, "estop_stop")
+        except Exception as exc:  # noqa: BLE001 - see the docstring
+            with contextlib.suppress(Exception):
+                report("error", f"{describe_error(exc)}; still watching")

@@ -258,6 +258,10 @@ class Supervisor:
         """Stop the motors at the next tick, wherever the drone is."""
         self._requests.append((_STOP, cause, reason, ""))
 
+    def note(self, level: str, text: str, source: str = "supervisor") -> None:
+        """An event from a part outside the loop (the e-stop mailbox), at the latest tick's time."""
+        self._event(self._now, level, text, source=source)
+
     def interrupt(self) -> None:
         """SIGINT: the first lands, the second stops the motors."""
         self._interrupts += 1

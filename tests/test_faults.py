@@ -25,7 +25,7 @@ from cfknode.cli import main
 from cfknode.config import load_config
 from cfknode.flight.flightlog import read_log
 from cfknode.mission import FlightResult, run_flight
-from cfknode.safety.operator import EstopMailbox
+from cfknode.safety.estop_mailbox import live_flights
 
 
 def scenario_path(name: str) -> Path:
@@ -211,25 +211,25 @@ def test_soft_fence_clamps_a_reference_that_leaves_the_box(tmp_path):
 
 def test_estop_command_from_another_terminal_stops_a_flight(tmp_path):
     cfg = _cfg(tmp_path, None, **{"trajectory.kind": "hover", "trajectory.duration": 60.0})
-    box = EstopMailbox(tmp_path / "estop", cfg.hardware.robot)
+    box = tmp_path / "estop"
     result: list[FlightResult] = []
     flight = threading.Thread(target=lambda: result.append(run_flight(cfg)))
     flight.start()
     try:
         deadline = time.monotonic() + 120
-        while box.flight_pid() is None and flight.is_alive() and time.monotonic() < deadline:
+        while not live_flights(box) and flight.is_alive() and time.monotonic() < deadline:
             time.sleep(0.01)
-        code = subprocess.run([sys.executable, "-m", "cfknode", "estop", "--dir", str(tmp_path / "estop"),
-                               "--robot", cfg.hardware.robot, "--timeout", "30"], capture_output=True, text=True,
+        code = subprocess.run([sys.executable, "-m", "cfknode", "estop", "--dir", str(box),
+                               "--robot", "sim-cf231", "--timeout", "30"], capture_output=True, text=True,
                               timeout=120)
     finally:
         flight.join(timeout=300)
     assert code.returncode == 0, code.stderr
     outcome = result[0].outcome
     assert outcome.state.value == "EMERGENCY" and outcome.cause == "estop_stop"
-    assert outcome.message.startswith(f"motors stopped: cfknode estop --robot {cfg.hardware.robot} at")
-    assert box.flight_pid() is None  # the flight withdrew its presence
-    assert main(["estop", "--dir", str(tmp_path / "estop"), "--robot", cfg.hardware.robot]) == 1
+    assert outcome.message.startswith("motors stopped: cfknode estop --robot sim-cf231 at")
+    assert live_flights(box) == []  # the flight withdrew its presence
+    assert main(["estop", "--dir", str(box), "--robot", "sim-cf231"]) == 1
 
 
 def test_fault_free_flight_is_unchanged_by_the_supervisor(tmp_path):

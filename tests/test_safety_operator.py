@@ -1,50 +1,16 @@
 """Operator controls: the e-stop mailbox, ``cfknode estop``, and the SIGINT handler."""
 
 import asyncio
-import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
 import pytest
 
 from cfknode.cli import main
+from cfknode.safety.estop_mailbox import find_flight, live_flights, post
 from cfknode.safety.operator import EstopMailbox, estop_watch, mailbox_dir, sigint_handler
-
-
-def test_mailbox_round_trip(tmp_path):
-    flight = EstopMailbox(tmp_path, "cf 2/a")  # odd names become safe file names
-    assert flight.request_path.parent == tmp_path and "/" not in flight.request_path.name[6:]
-    assert flight.poll() is None
-    EstopMailbox(tmp_path, "cf 2/a").post("land")
-    assert flight.open()  # a request left from before the flight is stale: dropped
-    assert flight.poll() is None
-    assert EstopMailbox(tmp_path, "cf 2/a").flight_pid() == os.getpid()
-    EstopMailbox(tmp_path, "cf 2/a").post("land")
-    assert flight.poll() == "land" and flight.poll() is None
-    flight.request_path.write_text("garbage")
-    assert flight.poll() == "stop"  # unreadable is read as the stronger request
-    flight.close()
-    assert EstopMailbox(tmp_path, "cf 2/a").flight_pid() is None
-    with pytest.raises(ValueError, match="must be one of"):
-        flight.post("hover")
-
-
-def test_request_times_out_and_withdraws(tmp_path):
-    box = EstopMailbox(tmp_path, "cf1")
-    start = time.monotonic()
-    assert not box.request("stop", timeout=0.05)
-    assert time.monotonic() - start < 1.0 and not box.request_path.exists()
-
-
-def test_presence_of_a_dead_process_is_no_flight(tmp_path):
-    box = EstopMailbox(tmp_path, "cf1")
-    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    box.presence_path.write_text(json.dumps({"pid": int(proc.stdout)}))
-    assert box.flight_pid() is None
 
 
 def test_mailbox_dir_defaults(monkeypatch, tmp_path):
@@ -59,31 +25,66 @@ def test_mailbox_dir_defaults(monkeypatch, tmp_path):
 def test_estop_command_without_a_flight_says_so(tmp_path, capsys):
     assert main(["estop", "--robot", "cf9", "--dir", str(tmp_path)]) == 1
     assert "no flight of 'cf9' is running" in capsys.readouterr().err
+    assert main(["estop", "--dir", str(tmp_path / "missing")]) == 1
+    assert "no flight is running" in capsys.readouterr().err
 
 
-def test_estop_command_reaches_a_flight(tmp_path, capsys):
-    flight = EstopMailbox(tmp_path, "cf9")
-    flight.open()
-    taken: list[str] = []
-    stop = threading.Event()
-
-    def poll() -> None:  # the flight's side, as the supervisor polls it
+def _serve(flight: EstopMailbox, taken: list[str], stop: threading.Event) -> threading.Thread:
+    def poll() -> None:  # the flight's side, as the watcher polls it
         while not stop.is_set() and not taken:
-            action = flight.poll()
-            if action:
-                taken.append(action)
+            request = flight.poll()
+            if request:
+                taken.append(request.action)
             time.sleep(0.005)
 
     poller = threading.Thread(target=poll)
     poller.start()
+    return poller
+
+
+@pytest.mark.parametrize("select", [[], ["--robot", "cf9"]], ids=["only-flight", "by-robot"])
+def test_estop_command_reaches_a_flight(tmp_path, capsys, select):
+    flight = EstopMailbox(tmp_path, "cf9")
+    flight.open()
+    taken: list[str] = []
+    stop = threading.Event()
+    poller = _serve(flight, taken, stop)
     try:
-        assert main(["estop", "--robot", "cf9", "--dir", str(tmp_path), "--land"]) == 0
+        assert main(["estop", *select, "--dir", str(tmp_path), "--land"]) == 0
     finally:
         stop.set()
         poller.join()
         flight.close()
     assert taken == ["land"]
-    assert "land taken by the flight of 'cf9'" in capsys.readouterr().out
+    assert f"land taken by the flight of 'cf9' (pid {os.getpid()}, id {flight.id})" in capsys.readouterr().out
+
+
+def test_estop_command_with_several_flights_asks_which(tmp_path, capsys):
+    a, b = EstopMailbox(tmp_path, "sim-cf231"), EstopMailbox(tmp_path, "sim-cf231")
+    a.open()
+    b.open()
+    try:
+        assert main(["estop", "--dir", str(tmp_path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and a.id in err and b.id in err and "--id ID" in err
+        taken: list[str] = []
+        stop = threading.Event()
+        poller = _serve(b, taken, stop)
+        try:
+            assert main(["estop", "--dir", str(tmp_path), "--id", b.id]) == 0
+        finally:
+            stop.set()
+            poller.join()
+        assert taken == ["stop"] and a.poll() is None
+    finally:
+        a.close()
+        b.close()
+
+
+def test_estop_command_refuses_a_shared_directory(tmp_path, capsys):
+    tmp_path.chmod(0o777)
+    assert main(["estop", "--dir", str(tmp_path)]) == 2
+    assert "writable by group or others" in capsys.readouterr().err
 
 
 class Target:
@@ -134,6 +135,9 @@ class Requests:
     def request_stop(self, reason: str, cause: str) -> None:
         self.got.append(("stop", reason, cause))
 
+    def note(self, level: str, text: str, source: str) -> None:
+        self.got.append((level, text, source))
+
 
 def test_estop_watch_hands_requests_to_the_flight_between_ticks(tmp_path):
     target = Requests()
@@ -141,15 +145,28 @@ def test_estop_watch_hands_requests_to_the_flight_between_ticks(tmp_path):
 
     async def flight() -> None:
         with estop_watch(target, box, period=0.005):
-            assert box.flight_pid() == os.getpid()
-            EstopMailbox(tmp_path, "cf3").post("land")
+            assert find_flight(tmp_path, "cf3").pid == os.getpid()
+            post(find_flight(tmp_path, "cf3"), "land")
             while not target.got:
                 await asyncio.sleep(0.001)
-            EstopMailbox(tmp_path, "cf3").post("stop")
+            post(find_flight(tmp_path, "cf3"), "stop")
             while len(target.got) < 2:
                 await asyncio.sleep(0.001)
 
     asyncio.run(asyncio.wait_for(flight(), 10))
     assert target.got == [("land", "cfknode estop --robot cf3 --land", "estop_land"),
                           ("stop", "cfknode estop --robot cf3", "estop_stop")]
-    assert box.flight_pid() is None and not box.request_path.exists()
+    assert live_flights(tmp_path) == [] and not box.request_path.exists()
+
+
+def test_estop_watch_leaves_a_mailbox_opened_before_take_off_open(tmp_path):
+    box = EstopMailbox(tmp_path, "cf3")
+    box.open()
+
+    async def flight() -> None:
+        with estop_watch(Requests(), box, period=0.005):
+            await asyncio.sleep(0.01)
+
+    asyncio.run(flight())
+    assert box.is_open and [f.id for f in live_flights(tmp_path)] == [box.id]
+    box.close()
