@@ -47,6 +47,22 @@ class VehicleConfig:
 
 
 @dataclass(frozen=True)
+class AdaptationTuning:
+    """Gains and bounds of the fast adaptation layer (``cfknode.flight.adaptation.AdaptationSettings``)."""
+
+    bandwidth_hz: float
+    predictor_gain: float
+    adaptation_gain: float
+    thrust_rate: float
+    axis_rate: float
+    max_offset: float
+    thrust_scale_bounds: tuple[float, float]
+    axis_gain_bounds: tuple[float, float]
+    stale_pose_s: float
+    rebase_window_s: float
+
+
+@dataclass(frozen=True)
 class ControllerConfig:
     kind: Literal["mpc", "knode-mpc", "geometric"]
     model: str
@@ -67,6 +83,8 @@ class ControllerConfig:
     max_yaw_rate_deg: float
     geometric_kp: Vec3
     geometric_kd: Vec3
+    adaptation: Literal["none", "l1", "dob"]
+    adaptation_settings: AdaptationTuning
 
 
 @dataclass(frozen=True)
@@ -295,6 +313,12 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.max_tilt_deg", lambda v: 0 < v < 80, "in (0, 80)"),
     ("controller.min_thrust_fraction", lambda v: 0 <= v < 1, "in [0, 1)"),
     ("controller.max_thrust_fraction", lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
+    ("controller.adaptation_settings.bandwidth_hz", lambda v: 0 < v <= 50, "in (0, 50] Hz"),
+    ("controller.adaptation_settings.max_offset", lambda v: v > 0, "> 0 m/s^2"),
+    ("controller.adaptation_settings.thrust_scale_bounds", lambda v: 0 < v[0] <= 1 <= v[1], "[low, high] with 0 < low <= 1 <= high"),
+    ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
+    ("controller.adaptation_settings.stale_pose_s", lambda v: v > 0, "> 0 s"),
+    ("controller.adaptation_settings.rebase_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
     ("trajectory.radius", lambda v: v > 0, "> 0"),
     ("trajectory.speed", lambda v: v > 0, "> 0"),
     ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),

@@ -212,6 +212,7 @@ def _fly_session(
                     "backend": cfg.backend,
                     "lockstep": bool(sess.clock.lockstep),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
+                    **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
                     **sess.after_handback(),
                 },

@@ -21,7 +21,8 @@ from cfknode.config import ControllerConfig, VehicleConfig
 from cfknode.flight.clock import Clock
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.geometric import GeometricGains, geometric_acc
-from cfknode.flight.mellinger import AttitudeSetpoint, acc_to_setpoint
+from cfknode.flight.adaptation_loop import LoopAdaptation
+from cfknode.flight.mellinger import AttitudeSetpoint, acc_to_setpoint, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.trajectory import Trajectory
 from cfknode.mocap.source import PoseSource
@@ -53,6 +54,7 @@ class TickInfo:
     missed: bool
     model_version: int
     supervisor_state: str = ""  # the safety supervisor's state after this tick (State.value)
+    saturated: bool = False  # the command was cut by the thrust clamp or the tilt limit (fast adaptation only)
 
 
 class TickObserver(Protocol):
@@ -93,6 +95,7 @@ class FlightRecord:
     no_state_ticks: int = 0
     wall_time: float = 0.0
     events: list[str] = field(default_factory=list)
+    adaptation: dict[str, Any] = field(default_factory=dict)  # fast adaptation's end state, for the summary
 
     @classmethod
     def empty(cls, n: int) -> "FlightRecord":
@@ -112,7 +115,7 @@ class FlightRecord:
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
             solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
-            wall_time=self.wall_time, events=self.events,
+            wall_time=self.wall_time, events=self.events, adaptation=self.adaptation,
         )
 
     def ensure_room(self) -> None:
@@ -142,6 +145,9 @@ async def fly(parts: FlightParts) -> FlightRecord:
     deadline = sup.config.solve_deadline_s if sup.deadlines_apply else None
     acc_prev = np.zeros(3)
     prev: _Previous = _Previous()
+    # Fast adaptation (flight/adaptation_loop.py); None flies today's path unchanged.
+    adapt = LoopAdaptation(ctrl, parts.vehicle) if getattr(ctrl, "adaptation", "none") != "none" else None
+    saturated = False
     last_pose_t = -np.inf
     wall_start = time.perf_counter()
     k = 0
@@ -153,9 +159,11 @@ async def fly(parts: FlightParts) -> FlightRecord:
             now = parts.clock.now()
 
             pose = parts.mocap.latest(now)
+            pose_fresh = False
             if pose is not None and pose.t > last_pose_t:
                 last_pose_t = pose.t
                 if sup.accept_pose(now, pose):
+                    pose_fresh = True
                     parts.estimator.update(pose)
                     parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                                     "stamp": pose.t})
@@ -164,16 +172,25 @@ async def fly(parts: FlightParts) -> FlightRecord:
 
             solve_s, ok, status = 0.0, False, ""
             if action is FLY:
-                acc, ok, solve_s, source, status = _control(parts, est, ref, gains, prev, deadline)
+                if adapt is not None:
+                    _adapt_before(adapt, parts, now, est, pose_fresh, sup.state.value)
+                acc, ok, solve_s, source, status = _control(parts, est, ref, gains, prev, deadline, adapt)
                 if source == "fallback":
                     rec.fallbacks += 1
                     rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
                 acc_prev = acc
-                sp = acc_to_setpoint(acc, float(ref.yaw[0]), est.q, parts.vehicle, ctrl)
+                if adapt is None:
+                    sp = acc_to_setpoint(acc, float(ref.yaw[0]), est.q, parts.vehicle, ctrl)
+                else:
+                    sp, saturated = _adapt_after(adapt, parts, now, est, acc, float(ref.yaw[0]), prev)
             elif action is BLIND:
                 sp, acc_prev = sup.blind_setpoint, sup.blind_acc
                 prev.x_pred = prev.u_pred = None  # the last solution is stale once flying blind
+                if adapt is not None:
+                    adapt.off_air()
             else:
+                if adapt is not None:
+                    adapt.off_air()
                 sp = MOTORS_OFF
                 if source == "no_state":
                     rec.no_state_ticks += 1
@@ -194,7 +211,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
             if parts.observers:
                 version = parts.model.version if parts.model is not None else 0
                 info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version,
-                                sup.state.value)
+                                sup.state.value, saturated and action is FLY)
                 for observer in parts.observers:
                     observer.on_tick(info)
 
@@ -204,6 +221,8 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 k = max(k, int(parts.clock.now() / period) + 1)
     rec.wall_time = time.perf_counter() - wall_start
     rec.events = list(sup.events)
+    if adapt is not None:
+        rec.adaptation = adapt.summary()
     return rec.trimmed()
 
 
@@ -213,11 +232,12 @@ class _Previous:
 
     x_pred: np.ndarray | None = None
     u_pred: np.ndarray | None = None
+    residual: Any = None  # the model's own residual this tick (without the adaptation offset)
 
 
 def _control(
     parts: FlightParts, est: StateEstimate, ref: Any, gains: GeometricGains, prev: _Previous,
-    deadline: float | None = None,
+    deadline: float | None = None, adapt: LoopAdaptation | None = None,
 ) -> tuple[np.ndarray, bool, float, str, str]:
     """Acceleration command for this tick: the MPC, or the geometric controller when the MPC
     fails or (``deadline``, s) answers too late. Returns (acc, ok, solve time, source, status)."""
@@ -227,6 +247,9 @@ def _control(
         residual = None
         if parts.model is not None:
             residual = parts.model.residual(*linearisation_points(x0, ref.a, prev.x_pred, prev.u_pred))
+        prev.residual = residual
+        if adapt is not None:
+            residual = adapt.residual(residual, parts.controller.horizon)
         sol = parts.mpc.solve(x0, ref, residual)
         prev.x_pred, prev.u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
         solve_s = sol.solve_time
@@ -237,6 +260,28 @@ def _control(
         fallback_source, status = "geometric", "ok"
     acc = geometric_acc(est.p, est.v, ref.p[0], ref.v[0], ref.a[0], gains)
     return acc, parts.mpc is None, solve_s, fallback_source, status
+
+
+# --- fast adaptation: the whole of it in the loop (flight/adaptation_loop.py holds the rules) ---------------
+
+
+def _adapt_before(adapt: LoopAdaptation, parts: FlightParts, now: float, est: StateEstimate, pose_fresh: bool,
+                  state: str) -> None:
+    """Update the estimate from the last tick's command, and give the MPC its thrust limit (a parameter)."""
+    adapt.before_solve(now, est, pose_fresh, state, parts.model)
+    set_limit = getattr(parts.mpc, "set_thrust_limit", None)
+    if set_limit is not None:
+        set_limit(adapt.f_max())
+
+
+def _adapt_after(adapt: LoopAdaptation, parts: FlightParts, now: float, est: StateEstimate, acc: np.ndarray,
+                 yaw: float, prev: _Previous) -> tuple[AttitudeSetpoint, bool]:
+    """The setpoint with the estimated mass, tilt effectiveness and thrust cone; remembers what was flown."""
+    shaped = shape_force(acc, parts.vehicle, parts.controller, adapt.shaping())
+    sp = force_to_setpoint(shaped.force, yaw, est.q, parts.vehicle, parts.controller)
+    adapt.after_command(np.concatenate((est.p, est.v)), shaped, sp.thrust, prev.residual if parts.model is not None else None)
+    parts.log.write("/adaptation", now, adapt.log())
+    return sp, shaped.thrust_saturated or shaped.tilt_saturated
 
 
 def _log_tick(

@@ -61,6 +61,8 @@ class WindowRecorder:
             self._ground = float(est.p[2])
         if (
             tick.source not in ELIGIBLE_SOURCES
+            # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
+            or getattr(tick, "saturated", False)
             or tick.t < self.start_time
             or est.p[2] <= self._ground + MIN_HEIGHT
         ):
