@@ -207,7 +207,7 @@ def _fly_session(
             # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
             deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
             controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_controller(mpc),
-                                    deadline_s=deadline)
+                                    deadline_s=deadline, ground_z=ground_z)
             if online is not None:
                 controller.observers.append(online)
             parts = FlightParts(
@@ -257,6 +257,7 @@ def _fly_session(
                     "backend": cfg.backend,
                     "lockstep": bool(sess.clock.lockstep),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
+                    **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
                     **sess.after_handback(),
                 },

@@ -19,8 +19,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cfknode.flight.adaptation_loop import LoopAdaptation
 from cfknode.flight.geometric import GeometricGains, geometric_acc
-from cfknode.flight.mellinger import acc_to_setpoint
+from cfknode.flight.mellinger import acc_to_setpoint, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.reference import RefSamples
@@ -54,6 +55,7 @@ class Command:
     status: str  # "ok", the solver's status, or "deadline"
     solve_s: float  # the MPC's own solve time (0 without an MPC)
     ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
+    saturated: bool = False  # the thrust cone or the tilt limit cut the command (fast adaptation only)
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,7 @@ class TickInfo:
     missed: bool
     model_version: int
     supervisor_state: str = ""  # the safety supervisor's state after this tick, when there is one
+    saturated: bool = False  # the command was cut by the thrust clamp or the tilt limit (fast adaptation only)
 
 
 class TickObserver(Protocol):
@@ -84,7 +87,11 @@ class Controller:
     ``settings.kind`` "geometric" flies the geometric controller alone; otherwise ``solver``
     (built from the settings when None) flies, with ``model``'s KNODE residual when given.
     ``deadline_s``: an MPC answer slower than this flies the fallback (wall-clock flights;
-    None in lockstep, where computing takes no simulated time).
+    None in lockstep, where computing takes no simulated time). ``settings.adaptation`` other
+    than "none" runs the fast adaptation layer (``adaptation``): its offset reaches the MPC as
+    the residual's constant, its mass estimate the thrust cone and the Mellinger layer.
+    ``ground_z``: the floor's height, near which the layer does not learn (None: the first
+    state's height, as for a flight that takes off from where it starts).
     """
 
     def __init__(
@@ -95,6 +102,7 @@ class Controller:
         model: ModelSlot | None = None,
         solver: Solver | None = None,
         deadline_s: float | None = None,
+        ground_z: float | None = None,
     ) -> None:
         self.settings = settings
         self.vehicle = vehicle
@@ -108,6 +116,7 @@ class Controller:
         self.gains = GeometricGains.from_config(settings, vehicle)
         self.offsets = settings.dt * np.arange(settings.horizon + 1)
         self.observers: list[TickObserver] = []
+        self.adaptation = LoopAdaptation(settings, vehicle, ground_z) if settings.adaptation != "none" else None
         self._x_pred: np.ndarray | None = None
         self._u_pred: np.ndarray | None = None
         self._pending: TickInfo | None = None
@@ -121,25 +130,43 @@ class Controller:
         """The MPC's node times from ``t``: where the reference is sampled."""
         return t + self.offsets
 
-    def step(self, t: float, state: State, reference: Any, *, force_fallback: bool = False) -> Command:
+    def step(
+        self, t: float, state: State, reference: Any, *, force_fallback: bool = False, pose_fresh: bool = True,
+        phase: str = "TRACK",
+    ) -> Command:
         """The command for time ``t`` from ``state``, tracking ``reference``.
 
         ``reference`` is anything with ``sample(times) -> RefSamples`` (a trajectory), or
         ``RefSamples`` already on ``preview_times(t)``. ``force_fallback`` flies the geometric
         fallback after solving (replay of a tick that missed its deadline in flight), so the
-        warm start stays what it was in flight.
+        warm start stays what it was in flight. For the fast adaptation layer: ``pose_fresh``
+        (a new mocap frame arrived for this state; stale ones freeze the layer) and ``phase``
+        (the supervisor's state: "LAND" freezes the layer, "IDLE"/"LANDED"/"EMERGENCY" reset it).
         """
         start = time.perf_counter()
         if self._pending is not None:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
-        acc, ok, solve_s, source, status = self._acceleration(state, ref, force_fallback)
-        setpoint = acc_to_setpoint(acc, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
-        command = Command(acc, setpoint, source, status, solve_s, ok)
+        adapt = self.adaptation
+        if adapt is not None:
+            adapt.before_solve(t, state, pose_fresh, phase, self.model)
+            set_limit = getattr(self.solver, "set_thrust_limit", None)
+            if set_limit is not None:
+                set_limit(adapt.f_max())
+        acc, ok, solve_s, source, status, model_residual = self._acceleration(state, ref, force_fallback)
+        saturated = False
+        if adapt is None:
+            setpoint = acc_to_setpoint(acc, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+        else:
+            shaped = shape_force(acc, self.vehicle, self.settings, adapt.shaping())
+            setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+            adapt.after_command(np.concatenate((state.p, state.v)), shaped, setpoint.thrust, model_residual)
+            saturated = shaped.thrust_saturated or shaped.tilt_saturated
+        command = Command(acc, setpoint, source, status, solve_s, ok, saturated)
         if self.observers:
             version = self.model.version if self.model is not None else 0
             self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,
-                                     time.perf_counter() - start, solve_s, False, version)
+                                     time.perf_counter() - start, solve_s, False, version, saturated=saturated)
         return command
 
     def publish(self, **tick: Any) -> None:
@@ -154,23 +181,33 @@ class Controller:
             observer.on_tick(info)
 
     def reset(self) -> None:
-        """Forget the warm start (after flying blind, or any gap in the controller's ticks)."""
+        """Forget the warm start and the adaptation (after flying blind, or any gap in the controller's ticks)."""
         self._x_pred = self._u_pred = None
+        self.idle()
 
-    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool) -> tuple[np.ndarray, bool, float, str, str]:
+    def idle(self) -> None:
+        """A tick someone else flew (motors off, waiting for a pose): the adaptation starts over."""
+        if self.adaptation is not None:
+            self.adaptation.off_air()
+
+    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool) -> tuple[Any, ...]:
+        """(acc, ok, solve time, source, status, the model's own residual linearisation or None)."""
         if self.solver is None:
-            return self._geometric(state, ref), True, 0.0, "geometric", "ok"
+            return self._geometric(state, ref), True, 0.0, "geometric", "ok", None
         x0 = np.concatenate((state.p, state.v))
-        residual = None
+        model_residual = None
         if self.model is not None:
-            residual = self.model.residual(*linearisation_points(x0, ref.a, self._x_pred, self._u_pred))
+            model_residual = self.model.residual(*linearisation_points(x0, ref.a, self._x_pred, self._u_pred))
+        residual = model_residual
+        if self.adaptation is not None:
+            residual = self.adaptation.residual(model_residual, self.settings.horizon)
         sol = self.solver.solve(x0, ref, residual)
         self._x_pred, self._u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
         late = force_fallback or (self.deadline_s is not None and sol.solve_time > self.deadline_s)
         if sol.ok and not late:
-            return sol.acc, True, sol.solve_time, "mpc", "ok"
+            return sol.acc, True, sol.solve_time, "mpc", "ok", model_residual
         status = sol.status if not sol.ok else "deadline"
-        return self._geometric(state, ref), False, sol.solve_time, "fallback", status
+        return self._geometric(state, ref), False, sol.solve_time, "fallback", status, model_residual
 
     def _geometric(self, state: State, ref: RefSamples) -> np.ndarray:
         return geometric_acc(state.p, state.v, ref.p[0], ref.v[0], ref.a[0], self.gains)

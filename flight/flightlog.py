@@ -212,6 +212,14 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "t_col": _num("window length, s"), "error": _str("why the round failed (empty when ok)")},
     ),
     ChannelSpec(
+        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation.py), one per flown tick.",
+        {"offset": _vec(3, "acceleration offset added to the model, world, m/s^2"),
+         "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
+         "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),
+         "saturated": _bool("the last command was cut by the thrust clamp or the tilt limit")},
+        {"f_max": _num("specific thrust at the clamp for the estimated mass, m/s^2"), "mode": _str("dob or l1")},
+    ),
+    ChannelSpec(
         "/summary", "cfknode.Summary", "The flight summary (cfknode.flight.summary.FlightSummary.to_dict()).",
         {}, flush=True,
     ),

@@ -64,6 +64,7 @@ class FlightRecord:
     no_state_ticks: int = 0
     wall_time: float = 0.0
     events: list[str] = field(default_factory=list)
+    adaptation: dict[str, Any] = field(default_factory=dict)  # fast adaptation's end state, for the summary
 
     @classmethod
     def empty(cls, n: int) -> "FlightRecord":
@@ -83,7 +84,7 @@ class FlightRecord:
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
             solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
-            wall_time=self.wall_time, events=self.events,
+            wall_time=self.wall_time, events=self.events, adaptation=self.adaptation,
         )
 
     def ensure_room(self) -> None:
@@ -119,9 +120,11 @@ async def fly(parts: FlightParts) -> FlightRecord:
             now = parts.clock.now()
 
             pose = parts.mocap.latest(now)
+            pose_fresh = False
             if pose is not None and pose.t > last_pose_t:
                 last_pose_t = pose.t
                 if sup.accept_pose(now, pose):
+                    pose_fresh = True
                     parts.estimator.update(pose)
                     parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                                     "stamp": pose.t})
@@ -130,7 +133,9 @@ async def fly(parts: FlightParts) -> FlightRecord:
 
             solve_s, ok, status = 0.0, False, ""
             if action is FLY:
-                command = controller.step(now, est, ref)
+                command = controller.step(now, est, ref, pose_fresh=pose_fresh, phase=sup.state.value)
+                if controller.adaptation is not None:
+                    parts.log.write("/adaptation", now, controller.adaptation.log())
                 ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
                 if source == "fallback":
                     rec.fallbacks += 1
@@ -140,6 +145,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 sp, acc_prev = sup.blind_setpoint, sup.blind_acc
                 controller.reset()  # the last solution is stale once flying blind
             else:
+                controller.idle()
                 sp = MOTORS_OFF
                 if source == "no_state":
                     rec.no_state_ticks += 1
@@ -163,7 +169,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 controller.publish(compute_s=compute, missed=missed, supervisor_state=sup.state.value)
             if parts.observers:
                 info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version,
-                                sup.state.value)
+                                sup.state.value, action is FLY and command.saturated)
                 for observer in parts.observers:
                     observer.on_tick(info)
 
@@ -173,6 +179,8 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 k = max(k, int(parts.clock.now() / period) + 1)
     rec.wall_time = time.perf_counter() - wall_start
     rec.events = list(sup.events)
+    if controller.adaptation is not None:
+        rec.adaptation = controller.adaptation.summary()
     return rec.trimmed()
 
 

@@ -12,6 +12,7 @@ Runs at 400 Hz on 3-vectors, so it is plain ``math`` on floats (numpy costs more
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 from cfknode.flight.settings import ControllerConfig
@@ -24,33 +25,92 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
+@dataclass(frozen=True)
+class CommandShaping:
+    """What the fast adaptation layer tells the Mellinger layer (see flight/adaptation.py).
+
+    ``thrust_scale``: thrust is computed with this times the nominal mass. ``axis_gain``: the horizontal force
+    is divided by it (the attitude loop delivers only that fraction of a tilt), bounded to 0.5..2. With
+    ``cone`` the collective force is capped at the RPYT clamp (``max_thrust_fraction`` of it) by shrinking the
+    horizontal part: altitude before tilt."""
+
+    thrust_scale: float = 1.0
+    axis_gain: tuple[float, float] = (1.0, 1.0)
+    cone: bool = True
+
+
+@dataclass(frozen=True)
+class ShapedForce:
+    force: tuple[float, float, float]  # N, world, as sent (after limits and effectiveness)
+    applied_acc: tuple[float, float, float]  # the command as flown, in the model's input space (net acc, m/s^2)
+    thrust_saturated: bool  # capped at the clamp
+    tilt_saturated: bool  # horizontal part shrunk by the tilt limit or the cap
+
+
+def shape_force(acc_world: Sequence[float], vehicle: VehicleConfig, controller: ControllerConfig,
+                shaping: CommandShaping | None = None) -> ShapedForce:
+    """Desired world acceleration -> desired collective force, with the tilt limit (keeping the vertical part).
+
+    Without ``shaping`` this is exactly the nominal-mass layer."""
+    m = vehicle.mass * (shaping.thrust_scale if shaping is not None else 1.0)
+    ax, ay, az = float(acc_world[0]), float(acc_world[1]), float(acc_world[2])
+    fx = m * ax
+    fy = m * ay
+    fz = m * (az + vehicle.gravity)
+    thrust_sat = tilt_sat = False
+
+    # Tilt limit on the desired force, keeping its vertical component (altitude first).
+    # Asking for fz <= 0 (falling faster than gravity) cannot be flown: stay level, no thrust.
+    if fz <= 0.0:
+        tilt_sat = fx != 0.0 or fy != 0.0
+        fx = fy = 0.0
+        fz = max(fz, 0.0)
+    else:
+        f_xy = math.hypot(fx, fy)
+        f_xy_max = fz * math.tan(math.radians(controller.max_tilt_deg))
+        if shaping is not None and shaping.cone:
+            f_max = controller.max_thrust_fraction * vehicle.max_thrust
+            if fz >= f_max:
+                thrust_sat = True
+                fz = f_max
+                f_xy_max = 0.0
+            else:
+                f_xy_max = min(f_xy_max, math.sqrt(f_max * f_max - fz * fz))
+        if f_xy > f_xy_max:
+            tilt_sat = True
+            scale = f_xy_max / f_xy
+            fx *= scale
+            fy *= scale
+    applied = (fx / m, fy / m, fz / m - vehicle.gravity)
+    if shaping is not None:
+        gx = min(max(shaping.axis_gain[0], 0.5), 2.0)
+        gy = min(max(shaping.axis_gain[1], 0.5), 2.0)
+        fx, fy = fx / gx, fy / gy
+    return ShapedForce((fx, fy, fz), applied, thrust_sat, tilt_sat)
+
+
 def acc_to_setpoint(
     acc_world: Sequence[float],
     yaw_des: float,
     q: Sequence[float],
     vehicle: VehicleConfig,
     controller: ControllerConfig,
+    shaping: CommandShaping | None = None,
 ) -> AttitudeSetpoint:
     """Desired world acceleration [m/s^2], desired yaw [rad] and the measured attitude
     ``q`` (wxyz, body to world) -> roll/pitch angles, yaw rate and thrust command."""
-    m = vehicle.mass
-    fx = m * float(acc_world[0])
-    fy = m * float(acc_world[1])
-    fz = m * (float(acc_world[2]) + vehicle.gravity)
+    return force_to_setpoint(shape_force(acc_world, vehicle, controller, shaping).force, yaw_des, q, vehicle, controller)
 
-    # Tilt limit on the desired force, keeping its vertical component (altitude first).
-    # Asking for fz <= 0 (falling faster than gravity) cannot be flown: stay level, no thrust.
-    if fz <= 0.0:
-        fx = fy = 0.0
-        fz = max(fz, 0.0)
-    else:
-        f_xy = math.hypot(fx, fy)
-        f_xy_max = fz * math.tan(math.radians(controller.max_tilt_deg))
-        if f_xy > f_xy_max:
-            scale = f_xy_max / f_xy
-            fx *= scale
-            fy *= scale
 
+def force_to_setpoint(
+    force: Sequence[float],
+    yaw_des: float,
+    q: Sequence[float],
+    vehicle: VehicleConfig,
+    controller: ControllerConfig,
+) -> AttitudeSetpoint:
+    """Desired world force [N] (from ``shape_force``) -> RPYT setpoint for the measured attitude ``q``."""
+    fx, fy, fz = (float(f) for f in force)
     w, x, y, z = (float(c) for c in q)
     yaw_meas = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 

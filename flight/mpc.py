@@ -32,6 +32,13 @@ Input bounds (a box on u, from the vehicle):
 - |a_x|, |a_y| <= g tan(max_tilt): the horizontal acceleration a level-ish hover thrust
   can produce at the tilt limit.  Per axis, so the joint tilt may exceed it at a
   corner; the Mellinger layer, which owns the attitude, clamps the final tilt.
+
+With fast adaptation on (``controller.adaptation`` not none) the box becomes the thrust cone the
+vehicle really has, as per-stage linear rows whose bounds are parameters (no rebuild when the
+mass estimate moves): u_z <= f_max - g, where f_max is the specific thrust at the clamp for the
+estimated mass, and an octagon inscribed in the circle |u_xy| <= h_k, h_k = min(tan(tilt)(g + u_z),
+sqrt(f_max^2 - (g + u_z)^2)) taken at the previous solution's u_z. Near the clamp the horizontal
+room shrinks to nothing before the vertical does: altitude before tilt.
 """
 
 from __future__ import annotations
@@ -134,12 +141,15 @@ class ParameterLayout:
     """Where each block lives in the flat parameter vector (numpy row-major blocks)."""
 
     horizon: int
+    cone: bool = False  # per-stage thrust-cone bounds (u_z max, horizontal radius) as parameters
 
     @property
     def sizes(self) -> dict[str, int]:
         n = self.horizon
         # The residual blocks (c, jx, ju) stay last and contiguous: solve zeroes them in one write.
         blocks = {"x0": NX, "ref_p": 3 * (n + 1), "ref_v": 3 * (n + 1), "ref_a": 3 * n}
+        if self.cone:
+            blocks.update(cone_uz=n, cone_h=n)
         return {**blocks, "c": 3 * n, "jx": 3 * NX * n, "ju": 3 * NU * n}
 
     @property
@@ -168,12 +178,27 @@ class QpProblem:
     gradient: Any  # SX q(p) = gradient of the cost at w = 0
     lbw: np.ndarray
     ubw: np.ndarray
+    # Linear inequality rows lower(p) <= rows(w) <= upper(p) (the thrust cone); None without it.
+    rows: Any = None
+    rows_lower: Any = None
+    rows_upper: Any = None
+
+
+# Octagon directions for the horizontal cone, and the factor that puts it inside the circle.
+_OCTAGON = tuple((math.cos(a), math.sin(a)) for a in (0.0, math.pi / 4, math.pi / 2, 3 * math.pi / 4))
+_INSCRIBED = math.cos(math.pi / 8)
+_BIG = 1e3  # m/s^2: an inactive bound that stays finite (the KKT check multiplies by it)
+
+
+def cone_enabled(ctrl: ControllerConfig) -> bool:
+    return getattr(ctrl, "adaptation", "none") != "none"
 
 
 def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProblem:
     """Symbolic MPC problem; decision vector w = [u_0, x_1, u_1, x_2, ..., u_{N-1}, x_N]."""
     n, h = ctrl.horizon, ctrl.dt
-    layout = ParameterLayout(n)
+    cone = cone_enabled(ctrl)
+    layout = ParameterLayout(n, cone)
     sl = layout.slices
     p = ca.SX.sym("p", layout.size)
     w = ca.SX.sym("w", _STAGE * n)
@@ -216,8 +241,26 @@ def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProble
     err = w - t
     cost = ca.dot(err, weights * err)
     bounds = acceleration_bounds(ctrl, vehicle)
-    lbw = np.tile(np.concatenate((bounds.lower, np.full(NX, -np.inf))), n)
-    ubw = np.tile(np.concatenate((bounds.upper, np.full(NX, np.inf))), n)
+    lower, upper = bounds.lower, bounds.upper
+    rows = rows_lower = rows_upper = None
+    if cone:
+        # The cone rows replace the horizontal box and the vertical maximum; the box stays as a loose guard.
+        lower = np.array([-_BIG, -_BIG, bounds.lower[2]])
+        upper = np.array([_BIG, _BIG, _BIG])
+        uz_max, h_max = p[sl["cone_uz"]], p[sl["cone_h"]]
+        r, lo, hi = [], [], []
+        for k in range(n):
+            u_k = w[_STAGE * k : _STAGE * k + NU]
+            r.append(u_k[2])
+            lo.append(-_BIG)
+            hi.append(uz_max[k])
+            for cx, cy in _OCTAGON:
+                r.append(cx * u_k[0] + cy * u_k[1])
+                lo.append(-_INSCRIBED * h_max[k])
+                hi.append(_INSCRIBED * h_max[k])
+        rows, rows_lower, rows_upper = ca.vertcat(*r), ca.vertcat(*lo), ca.vertcat(*hi)
+    lbw = np.tile(np.concatenate((lower, np.full(NX, -np.inf))), n)
+    ubw = np.tile(np.concatenate((upper, np.full(NX, np.inf))), n)
     return QpProblem(
         layout=layout,
         p=p,
@@ -228,7 +271,23 @@ def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProble
         gradient=-2.0 * weights * t,
         lbw=lbw,
         ubw=ubw,
+        rows=rows,
+        rows_lower=rows_lower,
+        rows_upper=rows_upper,
     )
+
+
+def cone_limits(uz_plan: np.ndarray, f_max: float, ctrl: ControllerConfig, vehicle: VehicleConfig,
+                out_uz: np.ndarray, out_h: np.ndarray) -> None:
+    """Per-stage cone bounds (written into ``out_uz``, ``out_h``): vertical max f_max - g, and the horizontal
+    radius at the planned vertical ``uz_plan`` (clipped to what can be flown) within thrust and tilt."""
+    g = vehicle.gravity
+    out_uz[:] = f_max - g
+    lift = np.clip(uz_plan + g, ctrl.min_thrust_fraction * g, f_max)
+    np.minimum(math.tan(math.radians(ctrl.max_tilt_deg)) * lift, np.sqrt(np.maximum(f_max * f_max - lift * lift, 0.0)),
+               out=out_h)
+    # A sliver of room: rows with equal bounds are degenerate for the active-set QP (the Mellinger layer cuts the rest).
+    np.maximum(out_h, 0.05, out=out_h)
 
 
 def _qp_options(qp_solver: str) -> dict[str, Any]:
@@ -249,9 +308,15 @@ def build_rti_step(problem: QpProblem, qp_solver: str, name: str = "cfknode_mpc_
     and one QP is the exact solution.  ``kkt`` holds the optimality residuals of the answer.
     """
     w, p = problem.w, problem.p
-    a_expr = ca.jacobian(problem.dynamics, w)
     b_expr = -ca.substitute(problem.dynamics, w, ca.SX.zeros(w.sparsity()))
-    data = ca.Function(f"{name}_data", [p], [problem.gradient, a_expr, b_expr])
+    if problem.rows is not None:
+        a_expr = ca.jacobian(ca.vertcat(problem.dynamics, problem.rows), w)
+        lba_expr = ca.vertcat(b_expr, problem.rows_lower)
+        uba_expr = ca.vertcat(b_expr, problem.rows_upper)
+    else:
+        a_expr = ca.jacobian(problem.dynamics, w)
+        lba_expr = uba_expr = b_expr
+    data = ca.Function(f"{name}_data", [p], [problem.gradient, a_expr, lba_expr, uba_expr])
     structure = {"h": problem.hessian.sparsity(), "a": a_expr.sparsity()}
     qp = ca.conic(f"{name}_qp", qp_solver, structure, _qp_options(qp_solver))
 
@@ -259,11 +324,14 @@ def build_rti_step(problem: QpProblem, qp_solver: str, name: str = "cfknode_mpc_
     W0 = ca.MX.sym("w0", w.numel())
     LX0 = ca.MX.sym("lam_x0", w.numel())
     LA0 = ca.MX.sym("lam_a0", a_expr.size1())
-    q, a, b = data(P)
+    q, a, lba, uba = data(P)
     sol = qp(
-        h=problem.hessian, g=q, a=a, lba=b, uba=b, lbx=problem.lbw, ubx=problem.ubw, x0=W0, lam_x0=LX0, lam_a0=LA0
+        h=problem.hessian, g=q, a=a, lba=lba, uba=uba, lbx=problem.lbw, ubx=problem.ubw, x0=W0, lam_x0=LX0, lam_a0=LA0
     )
-    kkt = _kkt_residuals(problem, q, a, b, sol["x"], sol["lam_x"], sol["lam_a"])
+    if problem.rows is None:
+        kkt = _kkt_residuals(problem, q, a, lba, sol["x"], sol["lam_x"], sol["lam_a"])
+    else:
+        kkt = _kkt_residuals_rows(problem, q, a, lba, uba, sol["x"], sol["lam_x"], sol["lam_a"])
     return ca.Function(
         name,
         [P, W0, LX0, LA0],
@@ -291,6 +359,15 @@ def _kkt_residuals(problem: QpProblem, q: Any, a: Any, b: Any, w: Any, lam_x: An
         ca.mmax(ca.fmax(lb_lam, 0) * (ub - wb) + ca.fmax(-lb_lam, 0) * (wb - lb)), ca.norm_inf(lam_x[free])
     )
     return ca.vertcat(primal, bounds, stationarity, complementarity)
+
+
+def _kkt_residuals_rows(problem: QpProblem, q: Any, a: Any, lba: Any, uba: Any, w: Any, lam_x: Any, lam_a: Any) -> Any:
+    """``_kkt_residuals`` with inequality rows (the thrust cone): row feasibility and row complementarity added."""
+    base = _kkt_residuals(problem, q, a, lba, w, lam_x, lam_a)
+    g = ca.mtimes(a, w)
+    primal = ca.fmax(ca.mmax(lba - g), ca.mmax(g - uba))
+    rows_comp = ca.mmax(ca.fmax(lam_a, 0) * (uba - g) + ca.fmax(-lam_a, 0) * (g - lba))
+    return ca.vertcat(primal, base[1], base[2], ca.fmax(base[3], rows_comp))
 
 
 def build_ipopt_solver(problem: QpProblem, name: str = "cfknode_mpc_ipopt") -> Any:
@@ -329,7 +406,8 @@ class TranslationalMpc:
         self.problem = build_qp_problem(ctrl, vehicle)
         self.compiled: CompiledFunction | None = None
         n = self.horizon
-        nw, ng = _STAGE * n, NX * n
+        self.cone = cone_enabled(ctrl)
+        nw, ng = _STAGE * n, (NX + (1 + len(_OCTAGON) if self.cone else 0)) * n
 
         # Preallocated buffers: solve writes into these in place and never builds a DM.
         self._p = np.zeros(self.problem.layout.size)
@@ -342,6 +420,10 @@ class TranslationalMpc:
         self._res_jx = views["jx"].reshape(n, 3, NX)
         self._res_ju = views["ju"].reshape(n, 3, NU)
         self._res_start = self.problem.layout.slices["c"].start  # c, jx, ju are the trailing blocks
+        if self.cone:
+            self._cone_uz, self._cone_h = views["cone_uz"], views["cone_h"]
+            # Specific thrust at the clamp for the nominal mass until the adaptation layer says otherwise.
+            self.f_max = ctrl.max_thrust_fraction * vehicle.max_thrust / vehicle.mass
         self._residual_set = False
         self.rescues = 0  # solves whose first answer failed its KKT check and were solved again (see solve)
         self._w0 = np.zeros(nw)
@@ -368,6 +450,8 @@ class TranslationalMpc:
             other = "osqp" if ctrl.qp_solver == "qrqp" else "qrqp"
             self._rescue_buf, self._rescue_eval = _bind(build_rti_step(self.problem, other, "rescue"), args, results)
         elif ctrl.solver == "ipopt":
+            if self.cone:
+                raise ValueError("the thrust cone (controller.adaptation) needs controller.solver rti")
             self.function = build_ipopt_solver(self.problem)
             self.backend = "ipopt"
             self._lbg = np.zeros(ng)
@@ -382,6 +466,11 @@ class TranslationalMpc:
             self._buf, self._eval = _bind(self.function, args, results)
         else:
             raise ValueError(f"unknown solver {ctrl.solver!r}")
+
+    def set_thrust_limit(self, f_max: float) -> None:
+        """Specific collective thrust at the clamp [m/s^2] for the estimated mass (cone only; a parameter)."""
+        if self.cone and math.isfinite(f_max):
+            self.f_max = max(f_max, self.vehicle.gravity * 1.01)  # never below hover: the QP must stay feasible
 
     def reset(self) -> None:
         """Forget the warm start (e.g. after a fallback period or a jump in the reference)."""
@@ -400,6 +489,8 @@ class TranslationalMpc:
         np.copyto(self._ref_p, ref.p)
         np.copyto(self._ref_v, ref.v)
         np.copyto(self._ref_a, ref.a[:n])
+        if self.cone:
+            cone_limits(self._w0.reshape(n, _STAGE)[:, 2], self.f_max, self.ctrl, self.vehicle, self._cone_uz, self._cone_h)
         if residual is not None:
             np.copyto(self._res_c, residual.c)
             np.copyto(self._res_jx, residual.jx)

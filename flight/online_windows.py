@@ -66,6 +66,8 @@ class WindowRecorder:
             return None
         if (
             tick.source not in ELIGIBLE_SOURCES
+            # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
+            or getattr(tick, "saturated", False)
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + MIN_HEIGHT)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)

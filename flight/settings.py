@@ -9,6 +9,22 @@ from cfknode.kernel.vehicle import Vec3
 
 
 @dataclass(frozen=True)
+class AdaptationTuning:
+    """Gains and bounds of the fast adaptation layer (``cfknode.flight.adaptation.AdaptationSettings``)."""
+
+    bandwidth_hz: float
+    predictor_gain: float
+    adaptation_gain: float
+    thrust_rate: float
+    axis_rate: float
+    max_offset: float
+    thrust_scale_bounds: tuple[float, float]
+    axis_gain_bounds: tuple[float, float]
+    stale_pose_s: float
+    rebase_window_s: float
+
+
+@dataclass(frozen=True)
 class ControllerConfig:
     kind: Literal["mpc", "knode-mpc", "geometric"]
     model: str
@@ -29,6 +45,8 @@ class ControllerConfig:
     max_yaw_rate_deg: float
     geometric_kp: Vec3
     geometric_kd: Vec3
+    adaptation: Literal["none", "l1", "dob"]
+    adaptation_settings: AdaptationTuning
 
 
 @dataclass(frozen=True)

@@ -179,6 +179,9 @@ class FailingSolver:
         self._now = now
         self.injected = 0
 
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)  # the rest of the MPC (e.g. set_thrust_limit) passes through
+
     def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any:
         sol = self._inner.solve(x0, ref, residual)
         if not _in_windows(self._now(), self._windows):

@@ -41,6 +41,8 @@ SAMPLES: dict[str, dict] = {
     "/events": {"level": "warning", "text": "mocap frame late by 12 ms", "source": "mocap"},
     "/safety": {"state": "TRACK", "reason": "", "pose_age_s": 0.012, "fence_margin_m": 0.9, "tracking_error_m": 0.004,
                 "battery_v": 3.82, "link_silence_s": 0.0, "fallback_ticks": 0},
+    "/adaptation": {"offset": np.array([0.1, -0.2, 0.3]), "thrust_scale": 1.3, "axis_gain": np.array([1.0, 1.0]),
+                    "frozen": False, "saturated": True, "f_max": 11.4, "mode": "dob"},
     "/model": {"version": np.int64(3), "event": "swap", "val_error": 0.021, "swap_ms": 0.31, "queue": [1, 2, 3],
                "round": 3, "window": [6.1, 6.6], "val_error_current": 0.034, "val_error_nominal": 0.05,
                "max_residual": 4.2, "val_pairs": 44, "train_wall_s": 0.11, "latency_s": 0.12, "install_ms": 0.6,

@@ -1,0 +1,131 @@
+"""The fast adaptation layer in the flight loop: one object the loop asks before the solve and tells after.
+
+Kept apart from the loop so it can move into a controller object as a whole. Per tick:
+``before_solve`` (reset / freeze / re-base / update) -> ``residual`` (the model's residual with the
+offset added to its constant term: a parameter write) -> ``shaping`` (thrust from the estimated mass,
+tilt over the axis gain, the thrust cone) -> ``after_command`` (what was flown, for the next update).
+
+Rules: reset off the air (not flying, landed, emergency); frozen near the ground and while landing
+(ground effect and contact are not the model's, and a landing keeps the mass it knew); frozen while
+mocap is stale (inside ``FastAdaptation``); re-based when the model slot's version changes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from cfknode.flight.settings import ControllerConfig
+from cfknode.kernel.vehicle import VehicleConfig
+from cfknode.flight.adaptation import AdaptationEstimate, FastAdaptation, settings_from_controller
+from cfknode.flight.mellinger import CommandShaping, ShapedForce
+from cfknode.flight.mpc import ResidualLinearisation
+
+GROUND_MARGIN = 0.1  # m above the floor: below, the ground carries part of the weight
+_RESET_STATES = ("IDLE", "PREFLIGHT", "LANDED", "EMERGENCY")
+_FROZEN_STATES = ("LAND",)
+
+
+class LoopAdaptation:
+    def __init__(self, ctrl: ControllerConfig, vehicle: VehicleConfig, ground_z: float | None = None) -> None:
+        self.ctrl, self.vehicle = ctrl, vehicle
+        self.layer = FastAdaptation(settings_from_controller(ctrl), ctrl.rate_hz, vehicle.gravity)
+        self._u = np.zeros(3)  # last command after the Mellinger layer's limits (model input space)
+        self._r = np.zeros(3)  # the model's residual for it
+        self._thrust = 0.0  # N, collective thrust sent for it
+        self._sat = (False, False)
+        self._have_command = False
+        self._version: int | None = None
+        self._ground = ground_z  # None: the first estimate's height
+        self.saturated_ticks = 0
+
+    @property
+    def estimate(self) -> AdaptationEstimate:
+        return self.layer.estimate
+
+    def f_max(self) -> float:
+        """Specific thrust at the clamp [m/s^2] for the estimated mass."""
+        mass = self.vehicle.mass * self.layer.estimate.thrust_scale
+        return self.ctrl.max_thrust_fraction * self.vehicle.max_thrust / mass
+
+    def off_air(self) -> None:
+        """A tick not flown by the controller (blind, motors off): start over next time."""
+        if self._have_command:
+            self.layer.reset()
+        self._have_command = False
+
+    def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
+        if self._ground is None:
+            self._ground = float(est.p[2])
+        if state in _RESET_STATES:
+            self.off_air()
+            return self.layer.estimate
+        version = model.version if model is not None else 0
+        if self._version is not None and version != self._version:
+            self._rebase(model)
+        self._version = version
+        if not self._have_command:
+            return self.layer.estimate
+        airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
+        x = np.concatenate((est.p, est.v))
+        u_flown = self.flown_acc(est.q)
+        return self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
+                                 u_commanded=self._u)
+
+    def flown_acc(self, q: Any) -> np.ndarray:
+        """The last command as flown: the sent thrust along the measured body z axis, over the estimated mass."""
+        w, x, y, z = (float(c) for c in q)
+        bz = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+        mass = self.vehicle.mass * self.layer.estimate.thrust_scale
+        return self._thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
+
+    def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
+        """The MPC's residual: the model's, with the offset added to every stage's constant."""
+        offset = self.layer.estimate.offset
+        if not self.layer.s.enabled:
+            return model_residual
+        if model_residual is None:
+            model_residual = ResidualLinearisation.zeros(horizon)
+        return ResidualLinearisation(model_residual.c + offset, model_residual.jx, model_residual.ju)
+
+    def shaping(self) -> CommandShaping:
+        e = self.layer.estimate
+        return CommandShaping(thrust_scale=e.thrust_scale, axis_gain=(float(e.axis_gain[0]), float(e.axis_gain[1])))
+
+    def after_command(self, x0: np.ndarray, shaped: ShapedForce, thrust_cmd: int,
+                      model_residual: ResidualLinearisation | None) -> None:
+        """Remember what was flown: the command after the limits, the thrust sent, the model's residual for it."""
+        u = np.asarray(shaped.applied_acc, dtype=float)
+        r = np.zeros(3)
+        if model_residual is not None:  # stage 0 of the model's own linearisation (no extra network pass)
+            r = model_residual.c[0] + model_residual.jx[0] @ x0 + model_residual.ju[0] @ u
+        self._u, self._r = u, r
+        self._thrust = thrust_cmd * self.vehicle.newton_per_cmd
+        self._sat = (shaped.thrust_saturated, shaped.tilt_saturated)
+        self.saturated_ticks += int(shaped.thrust_saturated or shaped.tilt_saturated)
+        self._have_command = True
+
+    def _rebase(self, model: Any) -> None:
+        x, u, _ = self.layer.recent()
+        inner = model.model if model is not None else None
+        new_acc = u.copy()
+        if inner is not None and x.shape[0]:
+            r = np.asarray(inner.evaluate(x, u), dtype=float)
+            if r.shape == u.shape and np.all(np.isfinite(r)):
+                new_acc = u + r
+        self.layer.rebase(new_acc)
+
+    def log(self) -> dict[str, Any]:
+        e = self.layer.estimate
+        return {**e.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode}
+
+    def summary(self) -> dict[str, Any]:
+        e = self.layer.estimate
+        return {"adaptation": self.layer.s.mode, "adaptation_thrust_scale_end": round(e.thrust_scale, 4),
+                "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
+                "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
+                "adaptation_rebases": self.layer.rebases}
+
+
+__all__ = ["GROUND_MARGIN", "LoopAdaptation"]
