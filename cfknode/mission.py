@@ -19,6 +19,7 @@ from cfknode import __version__
 from cfknode.config import Config, ConfigError
 from cfknode.kernel.clock import SimClock, WallClock
 from cfknode.flight.controller import Controller
+from cfknode.flight.trainer_client import refuse_in_spawned_import
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog
 from cfknode.flight.mpc_codegen import default_cache_dir
@@ -115,6 +116,7 @@ def run_flight(
     for operator controls outside the loop. ``dashboard`` is a rich Console to draw the live
     dashboard on (None: headless); its space and q keys land the drone.
     """
+    refuse_in_spawned_import()
     if cfg.backend == "sim":
         if not cfg.radio.uri.startswith("sim://"):
             raise ConfigError(f"config key 'radio.uri' must be a sim:// URI with backend sim, got {cfg.radio.uri!r}")

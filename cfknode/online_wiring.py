@@ -107,7 +107,7 @@ def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | No
     client.start()
     try:
         if wait and not client.wait_ready(READY_TIMEOUT_S):
-            raise ConfigError(f"online trainer did not start within {READY_TIMEOUT_S:g} s (see its stderr)")
+            raise ConfigError(client.start_problem)
         yield client
     finally:
         client.close()

@@ -49,6 +49,7 @@ class TrainerClient:
         self.starts = 0
         self.pid: int | None = None
         self.warmup_s = math.nan
+        self.start_problem = ""  # why the last wait_ready failed, one line
 
     def start(self) -> None:
         """Spawn a trainer (non-blocking: it reports ``TrainerReady`` when torch is up)."""
@@ -64,14 +65,18 @@ class TrainerClient:
         self.starts += 1
 
     def wait_ready(self, timeout: float) -> bool:
-        """Block until the trainer is up (pre-flight); False on timeout or failure."""
+        """Block until the trainer is up (pre-flight); False on timeout or failure, with
+        ``start_problem`` saying which in one line."""
         deadline = self._wall() + timeout
+        self.start_problem = ""
         while self.state == "starting":
             left = deadline - self._wall()
             if left <= 0:
+                self.start_problem = f"the online trainer did not start within {timeout:g} s"
                 return False
-            event = self.poll(left)
+            event = self.poll(min(left, 0.5))
             if isinstance(event, TrainerFault):
+                self.start_problem = _start_failure(event)
                 return False
         return self.state == "idle"
 
@@ -167,4 +172,24 @@ class TrainerClient:
         self._dead = alive
 
 
-__all__ = ["TrainerClient", "TrainerFault"]
+def refuse_in_spawned_import() -> None:
+    """Fail fast inside a spawned child that is re-importing an unguarded calling script.
+
+    Spawning re-runs the calling script's top level in the child; without an
+    ``if __name__ == "__main__":`` guard that would start a flight there. Raising at once
+    ends the child within a second, and the parent reports why.
+    """
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise RuntimeError("cfknode flight started while a spawned process imports its parent's script "
+                           "(guard the script's entry point with `if __name__ == \"__main__\":`)")
+
+
+def _start_failure(fault: TrainerFault) -> str:
+    """One line for a trainer that died while starting: usually an unguarded calling script."""
+    if fault.kind == "crash":
+        return (f"the online trainer could not start ({fault.reason}): a script that learns online must run "
+                "its flight under `if __name__ == \"__main__\":`, because the trainer process re-imports it")
+    return f"the online trainer could not start: {fault.reason}"
+
+
+__all__ = ["TrainerClient", "TrainerFault", "refuse_in_spawned_import"]
