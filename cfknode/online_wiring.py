@@ -24,6 +24,7 @@ import dataclasses
 from typing import Any, Iterator
 
 from cfknode.config import Config, ConfigError
+from cfknode.flight.controller import Controller
 from cfknode.flight.model_monitor import MonitorSettings
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.online import LearnerSettings, OnlineLearner
@@ -62,7 +63,10 @@ def trainer_settings(cfg: Config) -> TrainerSettings:
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
 
 
-def learner_settings(cfg: Config, lockstep: bool, ground_z: float | None = None) -> LearnerSettings:
+def learner_settings(
+    cfg: Config, lockstep: bool, ground_z: float | None = None, speed: float | None = None
+) -> LearnerSettings:
+    """``speed``: the gate's envelope speed (m/s); None takes it from the data."""
     o = cfg.online
     return LearnerSettings(
         t_col=o.t_col,
@@ -76,7 +80,7 @@ def learner_settings(cfg: Config, lockstep: bool, ground_z: float | None = None)
         rollback_ticks=o.rollback_ticks,
         rollback_fallbacks=o.rollback_fallbacks,
         max_restarts=o.max_restarts,
-        limits=gate_limits(cfg),
+        limits=gate_limits(cfg, speed),
         filter_hz=cfg.training.velocity_filter_hz,
         holdout_fraction=cfg.training.validation_fraction,
         queue_size=cfg.knode.queue_size,
@@ -86,14 +90,16 @@ def learner_settings(cfg: Config, lockstep: bool, ground_z: float | None = None)
     )
 
 
-def gate_limits(cfg: Config) -> GateLimits:
-    """The gate's plausibility limits on the MPC's operating envelope: its input box and twice the pattern speed."""
+def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
+    """The gate's plausibility limits on the MPC's operating envelope: its input box, and velocities up to
+    ``speed`` (m/s; None: twice the fastest axis of the data it judges, plus 0.5 m/s)."""
     from cfknode.flight.mpc import acceleration_bounds
 
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
-    x, u = operating_envelope(2.0 * cfg.trajectory.speed + 0.5, bounds.lower, bounds.upper)
+    x, u = operating_envelope(1.0 if speed is None else speed, bounds.lower, bounds.upper)
     o = cfg.online
-    return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain)
+    return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
+                      envelope_from_data=speed is None)
 
 
 @contextlib.contextmanager
@@ -141,12 +147,48 @@ def online_session(
     with contextlib.ExitStack() as stack:
         if trainer is None:
             trainer = stack.enter_context(start_trainer(cfg, wait=bool(clock.lockstep)))
-        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep), ground_z), slot, trainer, log, base)
+        # A mission knows its pattern: the envelope spans twice its speed.
+        speed = 2.0 * cfg.trajectory.speed + 0.5
+        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep), ground_z, speed), slot, trainer, log, base)
         yield learner
+
+
+class _NoLog:
+    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def online_learning(
+    controller: Controller, cfg: Config, *, lockstep: bool = True, log: Any = None, ground_z: float | None = None,
+    speed: float | None = None,
+) -> Iterator[OnlineLearner]:
+    """Online learning for a ``Controller`` flown by any loop (another simulator, a ROS 2 node).
+
+    Starts the trainer (the calling script needs an ``if __name__ == "__main__":`` guard), gives
+    the controller an empty model slot if it has none, and watches its ticks: call
+    ``controller.publish()`` once each command is sent (or let the next ``step`` do it).
+    ``lockstep``: the caller's time is simulated (models apply no earlier than their honest
+    training delay); False on a wall clock. ``ground_z``: the floor's height (None: no floor,
+    e.g. a flight that starts in the air). ``speed``: the gate's envelope speed (None: from the data).
+    """
+    cfg = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, enabled=True))
+    if controller.model is None:
+        controller.model = ModelSlot(None, version=0)
+    with start_trainer(cfg) as trainer:
+        learner = OnlineLearner(learner_settings(cfg, lockstep, ground_z, speed), controller.model, trainer,
+                                log if log is not None else _NoLog())
+        controller.observers.append(learner)
+        try:
+            yield learner
+        finally:
+            controller.publish()
+            controller.observers.remove(learner)
 
 
 __all__ = [
     "check_online",
+    "online_learning",
     "gate_limits",
     "learner_settings",
     "online_model_slot",

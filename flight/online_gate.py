@@ -130,9 +130,21 @@ class GateLimits:
     max_residual: float
     control_gain: tuple[float, float]
     max_velocity_gain: float
-    envelope_x: np.ndarray  # (m, 6)
+    envelope_x: np.ndarray  # (m, 6); its velocities are rescaled to the data's when ``envelope_from_data``
     envelope_u: np.ndarray  # (m, 3)
     max_cross_gain: float = math.inf
+    envelope_from_data: bool = False  # the envelope's speed is twice the recent data's fastest axis + 0.5 m/s
+
+
+def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
+    """The envelope's states: as configured, or scaled to the speed the recent data flew."""
+    if not limits.envelope_from_data or recent_x.shape[0] == 0:
+        return limits.envelope_x
+    reach = float(np.max(np.abs(limits.envelope_x[:, 3:6]))) or 1.0
+    speed = 2.0 * float(np.max(np.abs(recent_x[:, 3:6]))) + 0.5
+    x = limits.envelope_x.copy()
+    x[:, 3:6] *= speed / reach
+    return x
 
 
 def operating_envelope(
@@ -195,7 +207,8 @@ def gate_steps(
     n = len(fresh)
     if not model_is_finite(candidate_file):
         return GateVerdict(False, "non-finite weights", nan, nan, nan, nan, n)
-    xs = np.concatenate((recent_x, limits.envelope_x))
+    envelope_x = envelope_for(limits, recent_x)
+    xs = np.concatenate((recent_x, envelope_x))
     us = np.concatenate((recent_u, limits.envelope_u))
     peak = float(np.max(np.abs(candidate.evaluate(xs, us))))
     if not math.isfinite(peak):
@@ -208,7 +221,7 @@ def gate_steps(
     # batch size: one call over ~150 nodes crossed OpenBLAS's threading threshold and took 10x
     # longer on the busy cores than the same work in small products.
     k = recent_x.shape[0]
-    sel = np.concatenate((np.arange(0, k, 8), k + np.arange(limits.envelope_x.shape[0])))
+    sel = np.concatenate((np.arange(0, k, 8), k + np.arange(envelope_x.shape[0])))
     xs, us = xs[sel], us[sel]
     g_lo, g_hi, vgain, cross = math.inf, -math.inf, -math.inf, 0.0
     off = ~np.eye(3, dtype=bool)

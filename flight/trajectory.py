@@ -255,3 +255,19 @@ def circle_samples(t: np.ndarray, radius: float, speed: float, height: float) ->
     v = np.stack((-speed * s, speed * c, z), axis=-1)
     a = np.stack((-speed * w * c, -speed * w * s, z), axis=-1)
     return RefSamples(t, p, v, a, z.copy())
+
+
+@dataclass(frozen=True)
+class Circle:
+    """An endless horizontal circle about ``center`` at ``height``, counter-clockwise from +x (no take-off)."""
+
+    radius: float
+    speed: float
+    height: float
+    center: tuple[float, float] = (0.0, 0.0)
+
+    def sample(self, t: np.ndarray) -> RefSamples:
+        ref = circle_samples(t, self.radius, self.speed, self.height)
+        ref.p[:, 0] += self.center[0]
+        ref.p[:, 1] += self.center[1]
+        return ref
