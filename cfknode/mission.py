@@ -332,8 +332,9 @@ def _sim_session(cfg: Config) -> Iterator[Session]:
     mocap = SimulatedMocap.from_config(sim, cfg.sim, outages=faults.mocap_outages)
     register_simulator(cfg.radio.uri, sim)
     clock: WallClock | SimClock = WallClock() if cfg.sim.realtime else SimClock(sim)
-    radio = CflibRadio.from_config(
-        cfg.radio,
+    radio = CflibRadio(
+        cfg.radio.uri,
+        tx_rate_hz=cfg.radio.tx_rate_hz,
         lockstep=clock.lockstep,
         clock=clock.now,
         # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.

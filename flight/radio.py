@@ -36,7 +36,6 @@ from cflib.crazyflie import Crazyflie
 from cflib.crazyflie.log import LogConfig
 
 if TYPE_CHECKING:
-    from cfknode.config import RadioConfig
     from cfknode.kernel.setpoint import AttitudeSetpoint
 
 _TIME_EPS = 1e-9  # s; tick times built as k * period must not miss a TX slot to rounding
@@ -113,10 +112,6 @@ class CflibRadio:
         self._hb_enabled = False  # decided at connect: requested and supported by the firmware
         self._next_hb = -math.inf
         self._heartbeats_sent = 0
-
-    @classmethod
-    def from_config(cls, config: "RadioConfig", **kwargs: Any) -> "CflibRadio":
-        return cls(config.uri, tx_rate_hz=config.tx_rate_hz, **kwargs)
 
     @property
     def cf(self) -> Crazyflie | None:

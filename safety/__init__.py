@@ -8,3 +8,7 @@
 - ``estop_mailbox``: the ``cfknode estop`` mailbox: flight identity, presence, requests.
 - ``preflight``: hardware pre-flight checks before the clock starts.
 """
+
+# One import name per module: a checkout on sys.path also exposes this folder as "safety".
+if __name__ != "cfknode.safety":
+    raise ImportError(f"import cfknode.safety, not {__name__}: this folder is installed as part of cfknode")

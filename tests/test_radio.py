@@ -207,7 +207,7 @@ def test_link_lost_is_reported(sim_uri: tuple[FakeSim, str]) -> None:
 
 def test_from_config_uses_radio_section() -> None:
     cfg = load_config(overrides={"radio.tx_rate_hz": 150.0, "radio.uri": "sim://7"})
-    radio = CflibRadio.from_config(cfg.radio, lockstep=True)
+    radio = CflibRadio(cfg.radio.uri, tx_rate_hz=cfg.radio.tx_rate_hz, lockstep=True)
     assert radio.uri == "sim://7"
     assert radio.tx_rate_hz == 150.0 and radio.lockstep
 
@@ -219,7 +219,7 @@ def test_flies_the_real_simulator_and_hands_it_back_unlocked() -> None:
     sim = SimCrazyflie(cfg.vehicle, cfg.sim)
     uri = f"sim://{next(_uris)}"
     register_simulator(uri, sim)
-    radio = CflibRadio.from_config(cfg.radio, lockstep=True, clock=lambda: sim.t, advance=sim.step_to)
+    radio = CflibRadio(cfg.radio.uri, tx_rate_hz=cfg.radio.tx_rate_hz, lockstep=True, clock=lambda: sim.t, advance=sim.step_to)
     radio.uri = uri
     try:
         radio.connect(timeout=2.0)
