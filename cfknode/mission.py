@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from cfknode import __version__
 from cfknode.config import Config, ConfigError
+from cfknode.flight_checks import refuse_unflyable
 from cfknode.flight.clock import SimClock, WallClock
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.flightlog import FlightLog
@@ -119,6 +120,8 @@ def run_flight(
         except HARDWARE_ERRORS as exc:
             raise MissionError(str(exc)) from exc
         session = _cf_session(cfg, dashboard)
+    # Before anything is built or connected: an unflyable config is refused in one line.
+    forced = refuse_unflyable(flight_cfg, where="" if flight_cfg is cfg else f"robot {cfg.hardware.robot}")
     from cfknode.online_wiring import online_model_slot, start_trainer
 
     model = build_model_slot(flight_cfg)
@@ -129,6 +132,7 @@ def run_flight(
     mpc = build_controller(flight_cfg)  # built (and compiled) before the clock starts
     # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
     with start_trainer(flight_cfg) as trainer, session as sess:
+        sess = replace(sess, events=(*forced, *sess.events))
         return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer)
 
 

@@ -14,7 +14,7 @@ from cfknode.cli import main
         (["fly", "--set", "trajectory.radiuss=1"], "unknown config key 'trajectory.radiuss'"),
         (["fly", "--set", "trajectory.speed=fast"], "'trajectory.speed' must be a number"),
         (["fly", "--config", "/nonexistent/my.yaml"], "config file not found: /nonexistent/my.yaml"),
-        (["fly", "--radius", "-0.5"], "'trajectory.radius' must be > 0"),
+        (["fly", "--radius", "-0.5"], "trajectory.radius = -0.5 is out of range: must be 0.05 to 5 m"),
         (["fly", "--set", "novalue"], "--set expects key=value"),
     ],
 )
