@@ -110,7 +110,7 @@ BOUNDS: dict[str, Bound] = {
     "sim.mocap_latency": _b(0, 0.5, "s"),
     "sim.mocap_dropout_prob": _b(0, 1, open_high=True),
     "sim.mass_changes.t": _SIM_TIME,
-    "sim.mass_changes.factor": _b(0.25, 4.0),  # the range the online gate is built for
+    "sim.mass_changes.factor": _b(0.25, 4.0, "x nominal mass"),  # the range the online gate is built for
     "sim.wind": _WIND,
     "sim.drag": _b(0, 1, "N/(m/s)"),  # drag only takes energy out
     # KNODE networks and training.
