@@ -65,7 +65,8 @@ def fence_problem(cfg: Config, traj: Trajectory) -> str | None:
     for i, axis in enumerate("xyz"):
         if p[:, i].max() > hi[i] + 1e-9:
             return (f"the trajectory ({_describe(cfg)}) reaches {axis} = {p[:, i].max():.2f} m, beyond the fence's "
-                    f"{hi[i]:.2f} m (safety.fence_max {axis} {fence.hi[i]:g} m - safety.fence_margin {fence.margin:g} m)")
+                    f"{hi[i]:.2f} m (safety.fence_max {axis} {fence.hi[i]:g} m - safety.fence_margin "
+                    f"{fence.margin:g} m)")
         if p[:, i].min() < lo[i] - 1e-9:
             inset = f" + safety.fence_margin {fence.margin:g} m" if i < 2 else ""
             return (f"the trajectory ({_describe(cfg)}) reaches {axis} = {p[:, i].min():.2f} m, beyond the fence's "

@@ -90,8 +90,10 @@ def test_bad_paths_are_one_line_and_exit_2(tmp_path, capsys):
 def test_a_missing_crazyradio_shows_only_the_clean_message(tmp_path):
     # Radio index 9: no such dongle on any test machine. cflib logs the failure with a traceback.
     robots = tmp_path / "robots.yaml"
-    robots.write_text(example_robots_path().read_text().replace("radio://0/80/2M/E7E7E7E7E7 ", "radio://9/80/2M/E7E7E7E7E7 "))
-    argv = ["fly", "--backend", "cf", "--mocap", "mock", "--robots", str(robots), "--headless", "--log-dir", str(tmp_path)]
+    text = example_robots_path().read_text()
+    robots.write_text(text.replace("radio://0/80/2M/E7E7E7E7E7 ", "radio://9/80/2M/E7E7E7E7E7 "))
+    argv = ["fly", "--backend", "cf", "--mocap", "mock", "--robots", str(robots), "--headless",
+            "--log-dir", str(tmp_path)]
     proc = _cfknode(*argv)
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]

@@ -25,14 +25,18 @@ from cfknode.config_bounds import BOUNDS, Bound, leaves
         ({"vehicle.motor_time_constant": 0}, "vehicle.motor_time_constant = 0 is out of range: must be 0.005 to 0.2 s"),
         ({"radio.tx_rate_hz": 0.1}, "radio.tx_rate_hz = 0.1 is out of range: must be 20 to 500 Hz"),
         ({"safety.battery_land_v": 100}, "safety.battery_land_v = 100 is out of range: must be 3 to 4.35 V"),
-        ({"safety.touchdown_height": -1}, "safety.touchdown_height = -1 is out of range: must be above 0 and at most 0.2 m"),
-        ({"controller.max_yaw_rate_deg": -1}, "controller.max_yaw_rate_deg = -1 is out of range: must be above 0 and at most 360 deg/s"),
+        ({"safety.touchdown_height": -1},
+         "safety.touchdown_height = -1 is out of range: must be above 0 and at most 0.2 m"),
+        ({"controller.max_yaw_rate_deg": -1},
+         "controller.max_yaw_rate_deg = -1 is out of range: must be above 0 and at most 360 deg/s"),
         ({"training.epochs": 10**9}, "training.epochs = 1000000000 is out of range: must be 1 to 100000"),
         ({"training.epochs": "1e9"}, "training.epochs = 1000000000 is out of range: must be 1 to 100000"),
         ({"sim.mass_changes": [{"t": 1.0, "factor": 0.0}]},
          "sim.mass_changes[0].factor = 0 is out of range: must be 0.25 to 4 x nominal mass"),
-        ({"vehicle.inertia": [1.66e-5, 0, 2.93e-5]}, "vehicle.inertia[1] = 0 is out of range: must be 5e-06 to 0.0005 kg m^2"),
-        ({"vehicle.thrust_max_per_motor": 0}, "vehicle.thrust_max_per_motor = 0 is out of range: must be 0.05 to 0.5 N"),
+        ({"vehicle.inertia": [1.66e-5, 0, 2.93e-5]},
+         "vehicle.inertia[1] = 0 is out of range: must be 5e-06 to 0.0005 kg m^2"),
+        ({"vehicle.thrust_max_per_motor": 0},
+         "vehicle.thrust_max_per_motor = 0 is out of range: must be 0.05 to 0.5 N"),
         ({"estimator.position_std": 0}, "estimator.position_std = 0 is out of range: must be 1e-05 to 0.1 m"),
         ({"sim.battery_voltage": 5.0}, "sim.battery_voltage = 5 is out of range: must be 3 to 4.35 V"),
         ({"safety.fence_max": [1.5, 1.5, 200.0]}, "safety.fence_max[2] = 200 is out of range: must be -50 to 50 m"),
@@ -50,15 +54,18 @@ def test_unsafe_values_are_refused_with_key_bound_and_unit(overrides, message):
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"safety.battery_land_v": 3.8}, "safety.battery_land_v = 3.8 V must be below safety.battery_takeoff_min_v = 3.7 V"),
+        ({"safety.battery_land_v": 3.8},
+         "safety.battery_land_v = 3.8 V must be below safety.battery_takeoff_min_v = 3.7 V"),
         ({"controller.rate_hz": 50, "safety.solve_deadline_s": 0.01},
          "radio.tx_rate_hz = 100 Hz must be at most controller.rate_hz = 50 Hz"),
         ({"vehicle.mass": 0.05}, "vehicle cannot hover"),
         ({"controller.max_tilt_deg": 50, "safety.max_tilt_deg": 45}, "controller.max_tilt_deg = 50 deg must be below"),
         ({"controller.dt": 0.001}, "controller.dt = 0.001 s must be at least one control tick"),
-        ({"controller.horizon": 200, "controller.dt": 0.1}, "controller.horizon x controller.dt = 20 s is out of range"),
+        ({"controller.horizon": 200, "controller.dt": 0.1},
+         "controller.horizon x controller.dt = 20 s is out of range"),
         ({"controller.rate_hz": 1000}, "safety.solve_deadline_s = 0.002 s must be at most one control tick"),
-        ({"safety.fence_min": [2.0, -1.5, -0.2]}, "safety.fence_min x = 2 m must be below safety.fence_max x = 1.5 m"),
+        ({"safety.fence_min": [2.0, -1.5, -0.2]},
+         "safety.fence_min x = 2 m must be below safety.fence_max x = 1.5 m"),
         ({"safety.touchdown_height": 0.2, "trajectory.height": 0.15}, "safety.touchdown_height = 0.2 m must be below"),
         ({"online.rollback_ticks": 2, "online.rollback_fallbacks": 3}, "online.rollback_fallbacks = 3 must be at most"),
     ],
@@ -80,7 +87,8 @@ def _numeric_keys(cls: type, prefix: str = "") -> list[str]:
             out += _numeric_keys(tp, f"{prefix}{f.name}.")
         elif dataclasses.is_dataclass(inner):
             out += _numeric_keys(inner, f"{prefix}{f.name}.")
-        elif inner in (int, float) or (typing.get_origin(tp) is tuple and all(a in (int, float, Ellipsis) for a in args)):
+        elif inner in (int, float) or (typing.get_origin(tp) is tuple
+                                       and all(a in (int, float, Ellipsis) for a in args)):
             out.append(f"{prefix}{f.name}")
     return out
 
