@@ -19,6 +19,7 @@ import sys  # noqa: E402
 from typing import Sequence  # noqa: E402
 
 from cfknode import __version__  # noqa: E402
+from cfknode.cli_logging import command_logging  # noqa: E402
 from cfknode.config import ConfigError  # noqa: E402
 
 COMMANDS: tuple[str, ...] = ("fly", "train", "plot", "replay", "calibrate", "estop", "bench")
@@ -34,21 +35,25 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMANDS:
         module = importlib.import_module(f"cfknode.commands.{name}")
-        module.add_arguments(sub.add_parser(name, help=module.HELP, description=module.HELP))
+        command = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(command)
+        command.add_argument("-v", "--verbose", action="store_true",
+                             help="show the libraries' log output (cflib, ...) as well as cfknode's")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     module = importlib.import_module(f"cfknode.commands.{args.command}")
-    try:
-        return module.run(args)
-    except (ConfigError, UsageError) as exc:
-        print(f"cfknode: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("cfknode: interrupted", file=sys.stderr)
-        return 130
+    with command_logging(args.verbose):
+        try:
+            return module.run(args)
+        except (ConfigError, UsageError) as exc:
+            print(f"cfknode: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("cfknode: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

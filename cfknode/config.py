@@ -8,6 +8,7 @@ one-line message names the key or the file.
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass
@@ -215,6 +216,9 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
 
 def build_config(data: Mapping[str, Any]) -> Config:
     cfg = _build(Config, data, "")
+    from cfknode.config_bounds import check_bounds  # imported here: it imports this module
+
+    check_bounds(cfg)
     for key, ok, what in _RULES:
         value = _get(cfg, key)
         if not ok(value):
@@ -239,7 +243,9 @@ def read_yaml_mapping(path: Path, what: str = "config file") -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"{what} not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
@@ -312,6 +318,10 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
         return value
+    if tp in (int, float) and isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+        # YAML reads 1e-9 (an exponent without a decimal point) as a string.
+        number = float(value)
+        value = int(number) if tp is int and number.is_integer() else number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
@@ -330,6 +340,9 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
     if isinstance(tp, types.UnionType) or origin is typing.Union:
         raise TypeError(f"unsupported union in schema at {key}")
     raise TypeError(f"unsupported schema type {tp!r} at {key}")
+
+
+_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
 
 
 def _get(cfg: Any, dotted: str) -> Any:

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from cfknode import __version__
 from cfknode.config import Config, ConfigError
+from cfknode.flight_checks import refuse_unflyable
 from cfknode.kernel.clock import SimClock, WallClock
 from cfknode.flight.controller import Controller
 from cfknode.flight.trainer_client import refuse_in_spawned_import
@@ -132,6 +133,8 @@ def run_flight(
         except HARDWARE_ERRORS as exc:
             raise MissionError(str(exc)) from exc
         session = _cf_session(cfg, dashboard)
+    # Before anything is built or connected: an unflyable config is refused in one line.
+    forced = refuse_unflyable(flight_cfg, where="" if flight_cfg is cfg else f"robot {cfg.hardware.robot}")
     from cfknode.online_wiring import online_model_slot, start_trainer
 
     model = build_model_slot(flight_cfg)
@@ -143,6 +146,7 @@ def run_flight(
     # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
     # The e-stop mailbox first: a second flight of a flying robot is refused before anything connects.
     with estop_mailbox(cfg, flight_cfg) as estop, start_trainer(flight_cfg) as trainer, session as sess:
+        sess = replace(sess, events=(*forced, *sess.events))
         return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
                             estop)
 

@@ -39,7 +39,7 @@ def test_user_file_and_overrides(tmp_path):
         ({"controller.horizon": 2.5}, "'controller.horizon' must be an integer"),
         ({"sim.realtime": "yes"}, "'sim.realtime' must be true or false"),
         ({"vehicle.inertia": [1, 2]}, "'vehicle.inertia' must have 3 elements"),
-        ({"trajectory.radius": -1.0}, "'trajectory.radius' must be > 0"),
+        ({"trajectory.radius": -1.0}, "trajectory.radius = -1 is out of range: must be 0.05 to 5 m"),
         ({"sim.mass_changes": [{"t": 1.0}]}, "missing config key 'sim.mass_changes[0].factor'"),
         ({"trajectory": 3}, "'trajectory' must be a mapping"),
     ],

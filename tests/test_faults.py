@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from cfknode.cli import main
-from cfknode.config import load_config
+from cfknode.config import ConfigError, load_config
 from cfknode.flight.flightlog import read_log
 from cfknode.mission import FlightResult, run_flight
 from cfknode.safety.estop_mailbox import live_flights
@@ -199,9 +199,13 @@ def test_sigint_in_a_real_process(tmp_path):
 
 
 def test_soft_fence_clamps_a_reference_that_leaves_the_box(tmp_path):
-    # The 0.5 m circle in a fence whose soft box ends at x = 0.4 m: flown clamped, never outside.
+    # The 0.5 m circle in a fence whose soft box ends at x = 0.4 m: refused before take-off unless
+    # forced; forced, it is flown clamped, never outside.
+    with pytest.raises(ConfigError, match="reaches x = 0.50 m, beyond the fence's 0.40 m"):
+        run_flight(_cfg(tmp_path, scenario_path("mocap_dropout_50ms"), **{
+            "faults.mocap_outages": [], "safety.fence_max": [0.6, 1.5, 2.0]}))
     res = run_flight(_cfg(tmp_path, scenario_path("mocap_dropout_50ms"), **{
-        "faults.mocap_outages": [], "safety.fence_max": [0.6, 1.5, 2.0]}))
+        "faults.mocap_outages": [], "safety.fence_max": [0.6, 1.5, 2.0], "hardware.force": True}))
     assert res.outcome.message == "flight complete: landed"
     assert res.record.p_ref[:, 0].max() == pytest.approx(0.4)
     assert res.summary.extra["fence_excursion_m"] == 0.0 and res.record.p[:, 0].max() < 0.6

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -266,9 +267,12 @@ def test_battery_sags_under_load_and_discharges():
 
 
 def test_motor_lag_can_be_disabled_but_not_under_resolved():
-    cfg, veh = make_vehicle(**{"vehicle.motor_time_constant": 0.0})
+    # The config refuses a motor without lag (config_bounds); the plant itself still supports it.
+    cfg = load_config()
+    no_lag = dataclasses.replace(cfg.vehicle, motor_time_constant=0.0)
+    veh = Vehicle(no_lag, cfg.sim)
     veh.reset(airborne_state(z=50.0))
     veh.step([40000] * 4, cfg.vehicle.mass)
     np.testing.assert_allclose(veh.motor_forces, 40000 / CMD_MAX * cfg.vehicle.thrust_max_per_motor)
     with pytest.raises(ValueError, match="motor_time_constant"):
-        make_vehicle(**{"vehicle.motor_time_constant": 0.0005})
+        Vehicle(dataclasses.replace(cfg.vehicle, motor_time_constant=0.0005), cfg.sim)

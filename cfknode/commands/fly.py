@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from typing import Any
 
+from cfknode.cli import UsageError
 from cfknode.config import Config, load_config, parse_override
 
 HELP = "fly a mission (default: the simulated 0.5 m circle)"
+NAME_MAX = 64  # the log file adds a 16-character timestamp; file names end at 255 bytes
+_NAME = re.compile(rf"[A-Za-z0-9._-]{{1,{NAME_MAX}}}")
 
 # CLI flag -> dotted config key. Flags are shortcuts; --set reaches every key.
 FLAGS: dict[str, str] = {
@@ -67,7 +71,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--paper-lockstep", dest="paper_lockstep", action="store_true",
                    help="online learning as the paper's code does it: the simulation waits for every model "
                         "(for reproduction only)")
-    p.add_argument("--name", default=None, help="name hint for the log file")
+    p.add_argument("--name", default=None,
+                   help=f"name hint for the log file (up to {NAME_MAX} of A-Z a-z 0-9 . _ -)")
 
 
 def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) -> Config:
@@ -91,6 +96,10 @@ def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.name is not None and not _NAME.fullmatch(args.name):
+        shown = args.name if len(args.name) <= 24 else args.name[:24] + "..."
+        raise UsageError(f"--name must be 1 to {NAME_MAX} of the characters A-Z a-z 0-9 . _ - "
+                         f"(it names the log file), got {shown!r} ({len(args.name)} characters)")
     cfg = config_from_args(args)  # validate before importing the heavy parts
     from rich.console import Console
 
