@@ -124,6 +124,29 @@ def _open_unique(directory: Path, stamp: str, hint: str) -> tuple[Path, BinaryIO
     raise LogError(f"{directory}: no free log file name for {stamp}-{hint}")
 
 
+class _CountedStream:
+    """The log file as the MCAP writer sees it: counting the writes that succeeded tells the log
+    when a closed chunk reached the file, so a later failure knows what it lost."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self._stream = stream
+        self.writes = 0
+
+    def write(self, data: bytes) -> int:
+        n = self._stream.write(data)
+        self.writes += 1
+        return n
+
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def flush(self) -> None:
+        self._stream.flush()
+
+    def close(self) -> None:
+        self._stream.close()
+
+
 class FlightLog:
     """Writes one flight's MCAP log. Create with ``FlightLog.create``; use as a context manager.
 
@@ -133,7 +156,7 @@ class FlightLog:
     def __init__(
         self,
         path: Path,
-        stream: BinaryIO,
+        stream: _CountedStream,
         writer: Writer,
         topics: Mapping[str, tuple[int, bool]],
         flush_interval: float,
@@ -151,7 +174,7 @@ class FlightLog:
         self._count = 0
         self._dropped = 0
         self._failure: str | None = None
-        # Earliest flight time written since the last successful flush: what a failure loses.
+        # Earliest flight time written since a chunk last reached the file: what a failure loses.
         self._unflushed_from: float | None = None
         self._lost_from: float | None = None
         self._stop = threading.Event()
@@ -192,7 +215,8 @@ class FlightLog:
             kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
             if compression not in kinds:
                 raise ValueError(f"compression must be one of {sorted(kinds)}, got {compression!r}")
-            writer = Writer(stream, chunk_size=chunk_size, compression=kinds[compression])
+            counted = _CountedStream(stream)
+            writer = Writer(counted, chunk_size=chunk_size, compression=kinds[compression])
             writer.start(profile="", library=f"cfknode {software_version}")
             config_json = json.dumps(_finite_or_none(dict(config)), default=_to_json, sort_keys=True)
             writer.add_metadata(METADATA_NAME, {
@@ -212,7 +236,7 @@ class FlightLog:
             stream.close()
             path.unlink(missing_ok=True)  # no empty, unreadable file left behind
             raise
-        log = cls(path, stream, writer, topics, flush_interval)
+        log = cls(path, counted, writer, topics, flush_interval)
         # /config is a flush channel: with it the file's first chunk (schemas, channels) is on disk now.
         log.write("/config", 0.0, {"software_version": software_version, "config": json.loads(config_json)})
         log._flusher.start()
@@ -239,8 +263,8 @@ class FlightLog:
     def lost_from(self) -> float | None:
         """After a write failure: the flight time (s) from which messages did not reach the file.
 
-        The failed write may have taken buffered messages with it, so this is the earliest time
-        written since the last successful flush. None if the log never failed, or lost no message.
+        The failed write takes the open chunk's messages with it, so this is the earliest time
+        written since a chunk last reached the file. None if the log never failed, or lost no message.
         """
         return self._lost_from
 
@@ -248,6 +272,18 @@ class FlightLog:
     def messages_dropped(self) -> int:
         """Messages discarded after a write failure."""
         return self._dropped
+
+    def incomplete(self) -> str | None:
+        """A phrase for the flight's summary when the log stopped writing, else None.
+
+        Says from which flight time messages are missing and why, e.g. "incomplete from
+        t = 12.34 s (/path: No space left on device; 4100 messages not written)".
+        """
+        if self._failure is None:
+            return None
+        where = (f"from t = {self._lost_from:.2f} s" if self._lost_from is not None
+                 else "at its end (index and footer)")
+        return f"incomplete {where} ({self._failure}; {self._dropped} messages not written)"
 
     def write(self, topic: str, t: float, msg: Mapping[str, Any]) -> None:
         """Log ``msg`` on ``topic`` at flight time ``t`` (s). numpy values become plain JSON.
@@ -279,12 +315,15 @@ class FlightLog:
                 return
             if self._unflushed_from is None or t < self._unflushed_from:
                 self._unflushed_from = t
+            writes = self._stream.writes
             try:
                 self._writer.add_message(channel_id, ns, text.encode(), ns)
             except OSError as exc:  # the add closed a full chunk, and that write failed
                 self._dropped += 1
                 self._fail(exc)
                 return
+            if self._stream.writes != writes:  # it closed a chunk (this message its last), now in the file
+                self._unflushed_from = None
             self._count += 1
             self._dirty = True
             if flush_now or time.monotonic() - self._last_flush >= self._flush_interval:

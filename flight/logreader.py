@@ -34,7 +34,8 @@ from mcap.records import Channel, Metadata, Schema
 from cfknode.flight.logdata import ColumnSink, LogColumns, LogDamage, LogData, require_messages
 from cfknode.flight.logformat import MCAP_MAGIC, METADATA_NAME, LogError, message_checker
 
-__all__ = ["LogColumns", "LogDamage", "LogData", "MAX_RECORD_BYTES", "read_columns", "read_log", "require_messages"]
+__all__ = ["LogColumns", "LogDamage", "LogData", "LogError", "MAX_RECORD_BYTES", "read_columns", "read_log",
+           "require_messages"]
 
 # Far above any chunk a writer makes (cfknode: 128 KiB; other tools: a few MiB). A record
 # claiming more is a broken length field, and reading it would take unbounded memory.

@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from cfknode.flight.flightlog import LogData, read_log
+from cfknode.flight.logreader import LogData, LogError, read_log, require_messages
 from cfknode.mocap.source import MocapStats, Pose, RateMeter
 
 
@@ -44,6 +44,10 @@ class ReplayMocap:
     @classmethod
     def from_log(cls, log: str | Path | LogData, *, time_offset: float = 0.0) -> "ReplayMocap":
         data = log if isinstance(log, LogData) else read_log(log)
+        try:
+            require_messages(data, ("/mocap",))
+        except LogError as exc:
+            raise ReplayError(str(exc)) from None
         available: list[float] = []
         poses: list[Pose] = []
         dropouts: list[float] = []
