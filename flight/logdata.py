@@ -25,7 +25,8 @@ class LogDamage:
     """What the reader skipped in one log, and from which flight time recorded data is missing."""
 
     skipped_records: int = 0  # complete but unreadable records (a chunk failing its CRC is one)
-    skipped_bytes: int = 0  # their bytes, plus an incomplete record at the end of the file
+    skipped_bytes: int = 0  # their bytes, plus the tail
+    tail_bytes: int = 0  # bytes after the last readable record that are not a footer (a cut record)
     gaps: tuple[tuple[float, float], ...] = ()  # flight-time spans (s) of the unreadable chunks
     truncated: bool = False  # no footer: the writer never closed the file
     end_t: float | None = None  # the last flight time read, s
@@ -56,15 +57,13 @@ class LogDamage:
     def line(self) -> str:
         """One line saying what was skipped and what is missing ("" for a clean log)."""
         parts: list[str] = []
-        if self.gaps:
+        if self.skipped_records:
             spans = ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in self.gaps[:3]) + (", ..." if len(self.gaps) > 3 else "")
-            parts.append(f"{len(self.gaps)} unreadable chunk(s) skipped, flight time {spans} missing")
+            parts.append(f"{self.skipped_records} unreadable record(s) skipped ({self.skipped_bytes - self.tail_bytes}"
+                         " bytes)" + (f": flight time {spans} missing" if self.gaps else ""))
         if self.truncated:
             end = f"t = {self.end_t:.2f} s" if self.end_t is not None else "its start"
-            cut = f" ({self.stopped})" if self.stopped else " (no footer)"
-            parts.append(f"cut short{cut}: nothing after {end}")
-        if self.skipped_records or self.skipped_bytes:
-            parts.append(f"{self.skipped_records} record(s), {self.skipped_bytes} bytes skipped")
+            parts.append(f"cut short ({self.stopped or 'no footer'}): nothing after {end}")
         if self.bad_messages:
             top = sorted(self.bad_messages.items(), key=lambda kv: -kv[1])
             what = "; ".join(f"{k} x{n}" for k, n in top[:3]) + ("; ..." if len(top) > 3 else "")
@@ -79,6 +78,7 @@ class LogDamage:
             "truncated": self.truncated,
             "skipped_records": self.skipped_records,
             "skipped_bytes": self.skipped_bytes,
+            "tail_bytes": self.tail_bytes,
             "missing_from_s": self.missing_from,
             "end_s": self.end_t,
             "gaps_s": [list(g) for g in self.gaps],

@@ -143,26 +143,25 @@ class _Scan:
         self._warnings: list[str] = []
         self._first_config: dict[str, Any] | None = None
         self._end_t: float | None = None
-        skipped_records = skipped_bytes = 0
+        skipped_records = skipped_bytes = tail = 0
         stopped = ""
         complete = False
         pos = len(MCAP_MAGIC)
         while True:
             header = f.read(_HEADER.size)
             if len(header) < _HEADER.size:
-                skipped_bytes += len(header)
-                stopped = f"incomplete record at byte {pos}" if header else ""
+                tail = len(header)
+                stopped = f"incomplete record at byte {pos}, {tail} bytes skipped" if header else ""
                 break
             opcode, length = _HEADER.unpack(header)
             body_start = pos + _HEADER.size
             if length > size - body_start:
-                skipped_bytes += size - pos
-                stopped = f"incomplete record at byte {pos}"
+                tail = size - pos
+                stopped = f"incomplete record at byte {pos}, {tail} bytes skipped"
                 break
             if length > MAX_RECORD_BYTES:
-                skipped_records += 1
-                skipped_bytes += size - pos
-                stopped = f"record at byte {pos} claims {length} bytes: unreadable from there"
+                tail = size - pos
+                stopped = f"record at byte {pos} claims {length} bytes, unreadable from there: {tail} bytes skipped"
                 break
             if opcode == Opcode.FOOTER:
                 f.seek(length, io.SEEK_CUR)
@@ -172,8 +171,8 @@ class _Scan:
             if opcode in (Opcode.CHUNK, Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA):
                 body = f.read(length)
                 if len(body) < length:  # the file shrank while being read
-                    skipped_bytes += _HEADER.size + len(body)
-                    stopped = f"incomplete record at byte {pos}"
+                    tail = _HEADER.size + len(body)
+                    stopped = f"incomplete record at byte {pos}, {tail} bytes skipped"
                     break
                 try:
                     self._record(opcode, memoryview(body))
@@ -188,7 +187,7 @@ class _Scan:
             else:  # indexes, statistics, attachments: not needed to read the flight
                 f.seek(length, io.SEEK_CUR)
             pos = body_start + length
-        self._finish(skipped_records, skipped_bytes, stopped, complete)
+        self._finish(skipped_records, skipped_bytes + tail, tail, stopped, complete)
 
     def _record(self, opcode: int, body: memoryview) -> None:
         try:
@@ -256,11 +255,12 @@ class _Scan:
             self._first_config = msg
         self.on_message(topic, msg)
 
-    def _finish(self, skipped_records: int, skipped_bytes: int, stopped: str, complete: bool) -> None:
+    def _finish(self, skipped_records: int, skipped_bytes: int, tail: int, stopped: str, complete: bool) -> None:
         self._configuration()
         self.damage = LogDamage(
             skipped_records=skipped_records,
             skipped_bytes=skipped_bytes,
+            tail_bytes=tail,
             gaps=tuple(self._gaps),
             truncated=not complete,
             end_t=self._end_t,
