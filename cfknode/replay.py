@@ -105,7 +105,12 @@ def logged_config(log: LogData, overrides: Mapping[str, Any] | None = None) -> t
         raise ReplayError(f"{log.path}: the log holds no configuration ({why})")
     dropped: list[str] = []
     data = _overlay(default_dict(), log.config, "", dropped)
-    for key, value in (overrides or {}).items():
+    if not overrides:
+        try:
+            return build_config(data), dropped
+        except ConfigError as exc:  # the file's fault, not the command line's: name the file
+            raise ReplayError(f"{log.path}: the logged configuration is invalid: {exc}") from None
+    for key, value in overrides.items():
         _set_dotted(data, key, value)
     return build_config(data), dropped
 

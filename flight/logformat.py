@@ -258,8 +258,9 @@ def message_checker(topic: str, channels: tuple[ChannelSpec, ...] = CHANNELS) ->
 
 
 def _is_number(v: Any) -> bool:
-    # type() and not isinstance(): a JSON true must not pass as the number 1.
-    return v is None or type(v) is float or type(v) is int
+    # type() and not isinstance(): a JSON true must not pass as the number 1. An integer
+    # beyond a float's range would fail every numeric use downstream.
+    return v is None or type(v) is float or (type(v) is int and -1e300 < v < 1e300)
 
 
 def _field_check(prop: Mapping[str, Any]) -> Callable[[Any], bool]:

@@ -12,7 +12,6 @@ import struct
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
