@@ -258,7 +258,8 @@ class LogColumns:
         return self.sink.counts.get(topic, 0)
 
     def times(self, topic: str) -> np.ndarray:
-        return np.frombuffer(self.sink.times[topic], dtype=float).copy() if len(self.sink.times[topic]) else np.zeros(0)
+        t = self.sink.times[topic]  # KeyError: the topic was not asked for
+        return np.frombuffer(t, dtype=float).copy() if len(t) else np.zeros(0)
 
     def array(self, topic: str, field_name: str) -> np.ndarray:
         column = self.sink.columns[topic][field_name]

@@ -125,6 +125,14 @@ class _Scan:
     config: dict[str, Any] | None = None
     software_version: str | None = None
     damage: LogDamage = field(default_factory=LogDamage)
+    # Working state of the pass.
+    _schema_data: dict[int, tuple[str, str, bytes]] = field(default_factory=dict)  # id -> name, encoding, data
+    _channels: dict[int, tuple[str, Callable[[Any], str | None]] | None] = field(default_factory=dict)
+    _bad: dict[str, int] = field(default_factory=dict)  # "topic: problem" -> messages
+    _gaps: list[tuple[float, float]] = field(default_factory=list)
+    _warnings: list[str] = field(default_factory=list)
+    _first_config: dict[str, Any] | None = None
+    _end_t: float | None = None
 
     def run(self) -> None:
         f, size = open_log_file(self.path)
@@ -136,13 +144,6 @@ class _Scan:
             raise LogError(f"{self.path}: empty file, not an MCAP flight log")
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise LogError(f"{self.path}: not an MCAP flight log (bad magic bytes)")
-        self._schema_data: dict[int, tuple[str, str, bytes]] = {}  # id -> name, encoding, data
-        self._channels: dict[int, tuple[str, Callable[[Any], str | None]] | None] = {}
-        self._bad: dict[str, int] = {}
-        self._gaps: list[tuple[float, float]] = []
-        self._warnings: list[str] = []
-        self._first_config: dict[str, Any] | None = None
-        self._end_t: float | None = None
         skipped_records = skipped_bytes = tail = 0
         stopped = ""
         complete = False

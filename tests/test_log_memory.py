@@ -17,11 +17,18 @@ from cfknode.plotting import read_for_plot
 from synthetic_log import write_synthetic_flight
 
 BOUND_MB = 300.0
+# Peak RSS of the child itself: VmHWM belongs to the process's own memory map, while
+# getrusage's ru_maxrss survives exec and would report pytest's own peak at the fork.
 PLOT_AND_MEASURE = """
 import resource, sys
 from cfknode.cli import main
 code = main(["plot", sys.argv[1], "--out", sys.argv[2]])
-print(code, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)  # KiB on Linux
+try:
+    with open("/proc/self/status") as f:
+        kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+except OSError:
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+print(code, kib)
 """
 
 

@@ -20,6 +20,7 @@ from cfknode.config import load_config
 from cfknode.flight.logformat import CHANNELS, MCAP_MAGIC
 from cfknode.flight.logreader import LogData, read_log
 from cfknode.mission import run_flight
+from cfknode.mocap.replay import ReplayError, ReplayMocap
 
 SHORT = {
     "trajectory.duration": 1.5,
@@ -277,3 +278,10 @@ def test_a_chunk_claiming_a_huge_size_is_skipped_not_allocated(flight, tmp_path)
     data = read_log(bad)
     assert data.damage.skipped_records == 1 and len(data.damage.gaps) == 1
     assert data.count("/state") > 0.8 * flight.count("/state")
+
+
+def test_mocap_replay_of_a_log_whose_mocap_is_all_malformed_names_the_file(flight, tmp_path):
+    path = rewrite(flight, tmp_path / "mocap.mcap", lambda topic, m: [m["t"]] if topic == "/mocap" else m)
+    with pytest.raises(ReplayError, match=r"mocap\.mcap: no usable /mocap messages: all \d+ are malformed"):
+        ReplayMocap.from_log(path)
+    assert len(ReplayMocap.from_log(flight.path)) > 100
