@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from cfknode.config import Config, ConfigError
-from cfknode.flight.flightlog import LogData, read_log
+from cfknode.flight.logreader import LogData, read_log
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.robots import Robot, load_robot, write_robot_values
 

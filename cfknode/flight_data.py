@@ -7,13 +7,14 @@ kept (not motors-off, not sitting on the ground), and each such run is one segme
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from cfknode.config import ConfigError
-from cfknode.flight.flightlog import LogData, LogError, read_log
+from cfknode.flight.logreader import LogColumns, LogData, LogError, read_columns, require_messages
 from cfknode.models.training import Segment
 
 CONTROLLED = ("mpc", "fallback", "geometric")
@@ -21,7 +22,11 @@ MIN_HEIGHT = 0.1  # m above the start: below it ground effect and contact are no
 MIN_SEGMENT = 40  # ticks (0.1 s at 400 Hz); shorter runs hold no usable pairs after filtering
 
 
-def segments_from_log(log: LogData, name: str) -> list[Segment]:
+# What training reads of a log (as arrays: a long flight stays small in memory).
+TRAINING_FIELDS: dict[str, tuple[str, ...]] = {"/state": ("p", "v"), "/command": ("acc", "source")}
+
+
+def segments_from_log(log: LogData | LogColumns, name: str) -> list[Segment]:
     t_state = log.times("/state")
     t_cmd = log.times("/command")
     if t_state.size == 0 or t_cmd.size == 0:
@@ -42,14 +47,22 @@ def segments_from_log(log: LogData, name: str) -> list[Segment]:
     return segments
 
 
-def segments_from_logs(paths: Sequence[str | Path]) -> list[Segment]:
-    """All training segments from the given flight logs; a bad log is a one-line error."""
+def segments_from_logs(
+    paths: Sequence[str | Path], on_damage: Callable[[str], None] = lambda line: None
+) -> list[Segment]:
+    """All training segments from the given flight logs; a bad log is a one-line error.
+
+    ``on_damage`` gets one line per log that was read around damage (what was skipped).
+    """
     segments: list[Segment] = []
     for path in paths:
         try:
-            log = read_log(path)
+            log = read_columns(path, TRAINING_FIELDS)
+            require_messages(log, ("/state", "/command"))
         except LogError as exc:
             raise ConfigError(str(exc)) from None
+        if log.note:
+            on_damage(f"{path}: {log.note}")
         found = segments_from_log(log, Path(path).name)
         if not found:
             raise ConfigError(f"flight log {path} holds no airborne controlled flight to train on")

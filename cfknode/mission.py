@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterator, Sequence
 
@@ -46,6 +47,7 @@ class FlightResult:
     record: FlightRecord
     outcome: Outcome  # how the flight ended; ``outcome.message`` is the line the user sees
     learner: Any = None  # the online learner (flight.online.OnlineLearner) when online learning ran
+    log_incomplete: str | None = None  # the flight log stopped writing: from when, and why (FlightLog.incomplete)
 
 
 def build_supervisor(
@@ -269,7 +271,12 @@ def _fly_session(
                 },
             )
             log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
-    return FlightResult(summary=summary, record=record, outcome=outcome, learner=online)
+    # After close: closing writes the footer, which a full disk can refuse too.
+    incomplete = flight_log.incomplete()
+    if incomplete is not None:  # the flight is fine, its record is not: the summary and the outcome say so
+        summary = dataclasses.replace(summary, extra={**summary.extra, "flight_log": incomplete})
+        outcome = dataclasses.replace(outcome, message=f"{outcome.message}; but the flight log is {incomplete}")
+    return FlightResult(summary=summary, record=record, outcome=outcome, learner=online, log_incomplete=incomplete)
 
 
 def _controller_label(cfg: Config, loaded_model: bool, online: bool) -> str:

@@ -9,6 +9,9 @@
 Several logs overlay on the same axes to compare controllers; each legend entry names the
 log and its controller. A truncated log (the process killed mid-flight) plots up to its last
 complete record. Positions are the simulator's true ones when logged, else the estimate.
+
+Logs are streamed and only the plotted fields are kept, as arrays (``read_for_plot``): a
+10-minute flight plots in a few hundred MB at most.
 """
 
 from __future__ import annotations
@@ -26,13 +29,18 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, NullFormatter
 
-from cfknode.flight.flightlog import LogData, read_log
+from cfknode.flight.logreader import LogColumns, LogData, read_columns, require_messages
 
-__all__ = ["DPI", "FlightTrace", "PLOTS", "PlotReport", "plot_logs", "plot_traces", "trace_from_log"]
+__all__ = ["DPI", "FlightTrace", "PLOTS", "PlotReport", "plot_logs", "plot_traces", "read_for_plot",
+           "trace_from_log"]
 
 PLOTS: tuple[str, ...] = ("top_view", "altitude", "error_xyz", "timing", "model_versions")
 DPI = 100  # a 9 x 4.6 inch figure is 900 x 460 pixels
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+# What the plots read of a log: these fields as arrays, the small topics whole.
+PLOT_FIELDS: dict[str, tuple[str, ...]] = {"/state": ("p", "p_true"), "/reference": ("p",),
+                                           "/tick": ("compute_s", "solve_s")}
+PLOT_WHOLE: tuple[str, ...] = ("/model", "/summary")
 _EVENT_STYLE = {"swap": ("tab:green", "o"), "reject": ("tab:red", "x"), "rollback": ("darkorange", "v"),
                 "crash": ("black", "X"), "restart": ("0.45", "^")}
 
@@ -56,6 +64,7 @@ class FlightTrace:
     model_events: tuple[tuple[float, int, str], ...]  # (t, version, swap | reject | rollback)
     t_end: float  # last flight time in the log
     truncated: bool
+    damage: str = ""  # what the reader skipped or found missing (LogDamage.line()), "" for a clean log
 
 
 @dataclass(frozen=True)
@@ -64,20 +73,26 @@ class PlotReport:
     traces: tuple[FlightTrace, ...]
 
 
-def trace_from_log(log: LogData) -> FlightTrace:
+def read_for_plot(path: str | Path) -> LogColumns:
+    """Stream a log, keeping what the plots need; ``LogError`` (one line) for a file that cannot plot."""
+    log = read_columns(path, PLOT_FIELDS, PLOT_WHOLE)
+    require_messages(log, ("/state", "/reference"))
+    return log
+
+
+def trace_from_log(log: LogData | LogColumns) -> FlightTrace:
     """Extract a ``FlightTrace``; works on truncated logs (topics may end a message apart)."""
     config = log.config or {}
-    states = log.topic("/state")
-    true = bool(states) and all("p_true" in m for m in states)
+    states = log.count("/state")
+    true = states > 0 and log.present("/state", "p_true") == states
     p_all = log.array("/state", "p_true" if true else "p") if states else np.zeros((0, 3))
-    p_ref_all = log.array("/reference", "p") if log.topic("/reference") else np.zeros((0, 3))
+    p_ref_all = log.array("/reference", "p") if log.count("/reference") else np.zeros((0, 3))
     t, i_state, i_ref = np.intersect1d(log.times("/state"), log.times("/reference"), return_indices=True)
-    ticks = log.topic("/tick")
+    ticks = log.count("/tick")
     compute = log.array("/tick", "compute_s") * 1e3 if ticks else np.zeros(0)
     solve = log.array("/tick", "solve_s") * 1e3 if ticks else np.zeros(0)
     solve = solve[np.isfinite(solve) & (solve > 0)]
-    rate = _get(config, "controller.rate_hz", 400.0)
-    ends = [float(m[-1]["t"]) for name, m in log.messages.items() if m and name != "/summary"]
+    rate = _number(_get(config, "controller.rate_hz", 400.0), 400.0)
     return FlightTrace(
         name=f"{log.path.stem} · {_controller_label(config, log)}",
         path=log.path,
@@ -91,16 +106,18 @@ def trace_from_log(log: LogData) -> FlightTrace:
         window=_pattern_window(log),
         reference_key=json.dumps([_get(config, "trajectory", None), _get(config, "sim.initial_position", None)],
                                  sort_keys=True),
-        mass_changes=tuple((float(c["t"]), float(c["factor"])) for c in _get(config, "sim.mass_changes", []) or []),
-        model_events=tuple((float(m["t"]), int(m["version"]), str(m["event"])) for m in log.topic("/model")),
-        t_end=max(ends) if ends else 0.0,
+        mass_changes=_mass_changes(_get(config, "sim.mass_changes", [])),
+        model_events=tuple((float(m["t"]), int(m["version"]), str(m["event"])) for m in log.topic("/model")
+                           if m["version"] is not None),
+        t_end=log.end_time(),
         truncated=log.truncated,
+        damage=log.damage.line(),
     )
 
 
 def plot_logs(paths: Sequence[str | Path], out_dir: str | Path, dpi: int = DPI) -> PlotReport:
     """Read the logs and write every plot of ``PLOTS`` into ``out_dir``; raises ``LogError`` for a bad file."""
-    traces = tuple(trace_from_log(read_log(p)) for p in paths)
+    traces = tuple(trace_from_log(read_for_plot(p)) for p in paths)
     return PlotReport(plot_traces(traces, out_dir, dpi), traces)
 
 
@@ -354,7 +371,7 @@ def _title(fig: Figure, traces: Sequence[FlightTrace], what: str) -> None:
     fig.suptitle(f"{what}\n{sub}", fontsize=10)
 
 
-def _controller_label(config: dict[str, Any], log: LogData) -> str:
+def _controller_label(config: dict[str, Any], log: LogData | LogColumns) -> str:
     kind = _get(config, "controller.kind", "?")
     label = f"{kind} ({_get(config, 'controller.solver', '?')})" if kind == "mpc" else str(kind)
     if any(m.get("event") == "swap" for m in log.topic("/model")):
@@ -362,11 +379,13 @@ def _controller_label(config: dict[str, Any], log: LogData) -> str:
     return label
 
 
-def _pattern_window(log: LogData) -> tuple[float, float] | None:
+def _pattern_window(log: LogData | LogColumns) -> tuple[float, float] | None:
     summary = log.topic("/summary")
-    if summary and summary[-1].get("window"):
+    try:
         t0, t1 = summary[-1]["window"]
         return float(t0), float(t1)
+    except (IndexError, KeyError, TypeError, ValueError):
+        pass
     try:  # a truncated log has no summary: the window follows from the trajectory config
         from cfknode.flight.trajectory import make_trajectory
         from cfknode.replay import logged_config
@@ -375,6 +394,25 @@ def _pattern_window(log: LogData) -> tuple[float, float] | None:
         return make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float)).pattern_window
     except (ValueError, KeyError, TypeError):
         return None
+
+
+def _number(value: Any, default: float) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return default
+    return x if math.isfinite(x) and x > 0 else default
+
+
+def _mass_changes(changes: Any) -> tuple[tuple[float, float], ...]:
+    """``sim.mass_changes`` of the logged config; entries that are not {t, factor} numbers are left out."""
+    out = []
+    for change in changes if isinstance(changes, list) else []:
+        try:
+            out.append((float(change["t"]), float(change["factor"])))
+        except (KeyError, TypeError, ValueError):
+            continue
+    return tuple(out)
 
 
 def _get(config: dict[str, Any], dotted: str, default: Any) -> Any:

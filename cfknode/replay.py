@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cfknode.config import Config, ConfigError, build_config, default_dict
-from cfknode.flight.flightlog import LogData
+from cfknode.flight.logreader import LogData
 
 __all__ = [
     "COMMAND_FIELDS",
@@ -110,10 +110,16 @@ def logged_config(log: LogData, overrides: Mapping[str, Any] | None = None) -> t
     still replay); keys it lacks take today's defaults. Raises ``ConfigError`` for a bad override.
     """
     if log.config is None:
-        raise ReplayError(f"{log.path}: the log holds no configuration (no /config message or metadata)")
+        why = "; ".join(log.damage.warnings) or "no /config message or metadata"
+        raise ReplayError(f"{log.path}: the log holds no configuration ({why})")
     dropped: list[str] = []
     data = _overlay(default_dict(), log.config, "", dropped)
-    for key, value in (overrides or {}).items():
+    if not overrides:
+        try:
+            return build_config(data), dropped
+        except ConfigError as exc:  # the file's fault, not the command line's: name the file
+            raise ReplayError(f"{log.path}: the logged configuration is invalid: {exc}") from None
+    for key, value in overrides.items():
         _set_dotted(data, key, value)
     return build_config(data), dropped
 

@@ -1,8 +1,8 @@
-"""One self-describing MCAP file per flight (DESIGN.md section 7).
+"""One self-describing MCAP file per flight: the writer (the reader is ``logreader``).
 
 Messages are JSON, on channels that carry a JSON Schema, so Foxglove opens a log as is.
 Every message's MCAP log time is the flight time in nanoseconds, and its payload repeats it as
-``t`` in seconds.
+``t`` in seconds. The channels are the registry ``logformat.CHANNELS`` (see docs/logs.md).
 
 Crash safety: the file is flushed to the operating system whenever ``flush_interval`` seconds
 of wall time have passed since the last flush. A background thread does the same while no
@@ -10,36 +10,36 @@ messages arrive, so a process that dies (or hangs, then dies) loses at most abou
 The config and software version sit at the start of the file (MCAP metadata and the ``/config``
 channel), flushed at once, so even a file cut short right after take-off still names its setup.
 ``read_log`` reads such a truncated file up to its last complete record.
-
-Channels are a fixed registry, ``CHANNELS``. Adding one is one ``ChannelSpec(...)`` line there.
-``channels_markdown()`` renders the registry as a table for the README.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import json.encoder
 import logging
 import math
 import re
-import struct
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
-from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
+
+# The registry and the reader are re-exported: callers import them from here too.
+from cfknode.flight.logformat import (
+    CHANNELS,
+    MCAP_MAGIC,
+    METADATA_NAME,
+    ChannelSpec,
+    LogError,
+    channels_markdown,
+    check_message,
+)
+from cfknode.flight.logreader import LogData, read_log
 
 __all__ = [
     "CHANNELS",
@@ -47,226 +47,15 @@ __all__ = [
     "FlightLog",
     "LogData",
     "LogError",
+    "MCAP_MAGIC",
+    "METADATA_NAME",
     "channels_markdown",
     "check_message",
     "read_log",
 ]
 
 _logger = logging.getLogger(__name__)
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-METADATA_NAME = "cfknode"
 _MAX_T = 1.8e10  # s: the largest flight time whose nanoseconds fit MCAP's u64 log time
-# What a complete record with bad contents raises while decoding (CRC, decompression, JSON).
-_CORRUPT = (McapError, ValueError, KeyError, RuntimeError, struct.error, zstandard.ZstdError)
-
-
-class LogError(Exception):
-    """A flight log cannot be written or read; the message is one line naming the file."""
-
-
-# --- Channel registry --------------------------------------------------------------------------
-
-
-def _num(description: str) -> dict[str, Any]:
-    return {"type": "number", "description": description}
-
-
-def _vec(n: int, description: str) -> dict[str, Any]:
-    return {
-        "type": "array",
-        "items": {"type": "number"},
-        "minItems": n,
-        "maxItems": n,
-        "description": description,
-    }
-
-
-def _bool(description: str) -> dict[str, Any]:
-    return {"type": "boolean", "description": description}
-
-
-def _str(description: str) -> dict[str, Any]:
-    return {"type": "string", "description": description}
-
-
-def _obj(description: str) -> dict[str, Any]:
-    return {"type": "object", "description": description}
-
-
-_T = _num("flight time, s (the MCAP log time is the same, in ns)")
-
-
-@dataclass(frozen=True)
-class ChannelSpec:
-    """One topic of the flight log: its JSON Schema fields and its flush policy.
-
-    ``flush=True`` writes the topic to disk at once (rare, precious messages: config, events,
-    summary); other topics follow the periodic flush.
-    """
-
-    topic: str
-    schema_name: str
-    description: str
-    required: Mapping[str, Mapping[str, Any]]
-    optional: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    flush: bool = False
-
-    def json_schema(self) -> dict[str, Any]:
-        return {
-            "$schema": "https://json-schema.org/draft/2020-12/schema",
-            "title": self.schema_name,
-            "description": self.description + " Non-finite numbers are written as null.",
-            "type": "object",
-            "properties": {"t": _T, **self.required, **self.optional},
-            "required": ["t", *self.required],
-            "additionalProperties": True,
-        }
-
-
-CHANNELS: tuple[ChannelSpec, ...] = (
-    ChannelSpec(
-        "/config", "cfknode.Config", "The flight's configuration and software version.",
-        {"software_version": _str("cfknode version"), "config": _obj("cfknode Config.to_dict()")},
-        flush=True,
-    ),
-    ChannelSpec(
-        "/state", "cfknode.State", "State estimate used by the controller, one per tick.",
-        {"p": _vec(3, "position, world, m"), "v": _vec(3, "velocity, world, m/s"),
-         "q": _vec(4, "attitude quaternion body->world, w x y z")},
-        {"p_true": _vec(3, "simulator: true position, m"), "v_true": _vec(3, "simulator: true velocity, m/s"),
-         "q_true": _vec(4, "simulator: true attitude, w x y z")},
-    ),
-    ChannelSpec(
-        "/reference", "cfknode.Reference", "Reference at the tick time.",
-        {"p": _vec(3, "position, m"), "v": _vec(3, "velocity, m/s"), "a": _vec(3, "acceleration, m/s^2"),
-         "yaw": _num("yaw, rad")},
-    ),
-    ChannelSpec(
-        "/command", "cfknode.Command", "Command sent this tick: world acceleration and the RPYT setpoint.",
-        {"acc": _vec(3, "commanded acceleration, world, m/s^2"), "roll_deg": _num("roll, deg"),
-         "pitch_deg": _num("pitch, deg (cflib sign convention)"), "yawrate_deg": _num("yaw rate, deg/s"),
-         "thrust": _num("thrust command, 0..65535"),
-         "source": _str("which controller produced it: mpc, fallback, hold, stop, ...")},
-    ),
-    ChannelSpec(
-        "/tick", "cfknode.Tick", "Timing of one control tick.",
-        {"compute_s": _num("tick compute time, wall s"), "solve_s": _num("MPC solve time, wall s"),
-         "missed": _bool("the tick missed its deadline"), "mpc_ok": _bool("the MPC solution was used")},
-        {"status": _str("solver status")},
-    ),
-    ChannelSpec(
-        "/mocap", "cfknode.Mocap", "Motion-capture frame handed to the estimator.",
-        {"received": _bool("a frame arrived (false: dropout, p and q absent)")},
-        {"p": _vec(3, "position, m"), "q": _vec(4, "attitude, w x y z"),
-         "stamp": _num("frame sample time, s, when it differs from t")},
-    ),
-    ChannelSpec(
-        "/events", "cfknode.Event", "Discrete events: supervisor transitions, warnings, faults.",
-        {"level": _str("debug, info, warning, error or critical"), "text": _str("what happened")},
-        {"source": _str("the part that raised it")},
-        flush=True,
-    ),
-    ChannelSpec(
-        "/safety", "cfknode.Safety", "Safety supervisor status: at every transition and at 10 Hz.",
-        {"state": _str("IDLE, PREFLIGHT, TAKEOFF, TRACK, LAND, LANDED or EMERGENCY")},
-        {"reason": _str("why the supervisor is landing or stopped (empty when nominal)"),
-         "pose_age_s": _num("age of the newest mocap frame, s"),
-         "fence_margin_m": _num("distance inside the hard geofence, m (< 0: outside)"),
-         "tracking_error_m": _num("position minus reference, m"), "battery_v": _num("filtered battery voltage, V"),
-         "link_silence_s": _num("time since the radio link last answered, s"),
-         "fallback_ticks": _num("MPC failures in a row (the geometric controller flew them)")},
-    ),
-    ChannelSpec(
-        "/model", "cfknode.Model",
-        "KNODE model events: a network swapped in, rejected by the gate, rolled back, dropped for nominal by the monitor; trainer crash or restart.",
-        {"version": _num("model version the event is about (0 = nominal)"),
-         "event": _str("swap, reject, rollback, drop, crash or restart")},
-        {"reason": _str("why it was rejected or rolled back, or what failed"), "loss": _num("training loss"),
-         "val_error": _num("validation error (online: candidate's one-step velocity RMSE on fresh data, m/s)"),
-         "swap_ms": _num("time to write the solver parameters, ms"),
-         "queue": {"type": "array", "items": _num("version"), "description": "versions flying after it, oldest first"},
-         "round": _num("online training round"), "window": _vec(2, "training window [t0, t1], flight time s"),
-         "val_error_current": _num("the flying model's one-step velocity RMSE on the same data, m/s"),
-         "val_error_nominal": _num("the nominal model's one-step velocity RMSE on the same data, m/s"),
-         "max_residual": _num("largest residual component on the recent data, m/s^2"),
-         "val_pairs": _num("held-out pairs the gate judged on"),
-         "control_gain": _vec(2, "extreme eigenvalues of sym(I + dr/du) on the envelope"),
-         "velocity_gain": _num("largest eigenvalue of sym(dr/dv) on the envelope, 1/s"),
-         "cross_gain": _num("largest |off-diagonal| of dr/du on the envelope"),
-         "train_wall_s": _num("trainer wall time of the round, s"),
-         "latency_s": _num("wall time from sending the window to the result, s"),
-         "install_ms": _num("gate + folding + swap, spread over tick gaps, ms"),
-         "slice_ms": _num("the longest of those slices (what one tick gap absorbed), ms")},
-        flush=True,
-    ),
-    ChannelSpec(
-        "/training", "cfknode.Training", "One online training round's result (cfknode.models.trainer_process).",
-        {"round": _num("training round, 1.."), "version": _num("candidate model version"),
-         "window": _vec(2, "training window [t0, t1], flight time s"), "ok": _bool("the round produced a model")},
-        {"base_version": _num("version the window was flown with"), "pairs": _num("training pairs"),
-         "loss": _num("final data loss, (m/s^2)^2"), "val_rmse_model": _num("trainer's held-out RMSE, m/s"),
-         "val_rmse_nominal": _num("nominal model's held-out RMSE, m/s"),
-         "max_abs_residual": _num("largest residual on the training inputs, m/s^2"),
-         "train_wall_s": _num("trainer wall time of the round, s"), "train_cpu_s": _num("trainer CPU time, s"),
-         "latency_s": _num("wall time from sending the window to the result, s"),
-         "t_col": _num("window length, s"), "error": _str("why the round failed (empty when ok)")},
-    ),
-    ChannelSpec(
-        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation.py), one per flown tick.",
-        {"offset": _vec(3, "acceleration offset added to the model, world, m/s^2"),
-         "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
-         "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),
-         "saturated": _bool("the last command was cut by the thrust clamp or the tilt limit")},
-        {"f_max": _num("specific thrust at the clamp for the estimated mass, m/s^2"), "mode": _str("dob or l1")},
-    ),
-    ChannelSpec(
-        "/summary", "cfknode.Summary", "The flight summary (cfknode.flight.summary.FlightSummary.to_dict()).",
-        {}, flush=True,
-    ),
-)
-
-
-def channels_markdown(channels: tuple[ChannelSpec, ...] = CHANNELS) -> str:
-    """The registry as a Markdown table (topic, schema, fields), for the README."""
-    rows = ["| topic | schema | fields (optional in brackets) |", "|---|---|---|"]
-    for spec in channels:
-        fields = ["t", *spec.required, *(f"[{name}]" for name in spec.optional)]
-        rows.append(f"| `{spec.topic}` | `{spec.schema_name}` | {', '.join(fields)} |")
-    return "\n".join(rows)
-
-
-def check_message(topic: str, msg: Mapping[str, Any], channels: tuple[ChannelSpec, ...] = CHANNELS) -> list[str]:
-    """Problems of a message (as read back, with ``t``) against its channel's schema; [] if none.
-
-    Checks presence of required fields, the JSON type of each known field and array lengths.
-    For tests and offline checks, not the hot path.
-    """
-    spec = next((c for c in channels if c.topic == topic), None)
-    if spec is None:
-        return [f"unknown topic {topic!r}"]
-    schema = spec.json_schema()
-    problems = [f"{topic}: missing {name!r}" for name in schema["required"] if name not in msg]
-    for name, prop in schema["properties"].items():
-        if name in msg and not _matches(msg[name], prop):
-            problems.append(f"{topic}: field {name!r} = {msg[name]!r} is not {prop['type']}"
-                            + (f"[{prop['minItems']}]" if "minItems" in prop else ""))
-    return problems
-
-
-def _matches(value: Any, prop: Mapping[str, Any]) -> bool:
-    kind = prop["type"]
-    if kind == "number":  # null stands for a non-finite number
-        return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
-    if kind == "boolean":
-        return isinstance(value, bool)
-    if kind == "string":
-        return isinstance(value, str)
-    if kind == "object":
-        return isinstance(value, dict)
-    if kind == "array":
-        return (isinstance(value, list) and prop.get("minItems", 0) <= len(value) <= prop.get("maxItems", len(value))
-                and all(_matches(v, prop["items"]) for v in value))
-    return True
 
 
 # --- JSON encoding -----------------------------------------------------------------------------
@@ -335,6 +124,29 @@ def _open_unique(directory: Path, stamp: str, hint: str) -> tuple[Path, BinaryIO
     raise LogError(f"{directory}: no free log file name for {stamp}-{hint}")
 
 
+class _CountedStream:
+    """The log file as the MCAP writer sees it: counting the writes that succeeded tells the log
+    when a closed chunk reached the file, so a later failure knows what it lost."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self._stream = stream
+        self.writes = 0
+
+    def write(self, data: bytes) -> int:
+        n = self._stream.write(data)
+        self.writes += 1
+        return n
+
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def flush(self) -> None:
+        self._stream.flush()
+
+    def close(self) -> None:
+        self._stream.close()
+
+
 class FlightLog:
     """Writes one flight's MCAP log. Create with ``FlightLog.create``; use as a context manager.
 
@@ -344,7 +156,7 @@ class FlightLog:
     def __init__(
         self,
         path: Path,
-        stream: BinaryIO,
+        stream: _CountedStream,
         writer: Writer,
         topics: Mapping[str, tuple[int, bool]],
         flush_interval: float,
@@ -362,6 +174,9 @@ class FlightLog:
         self._count = 0
         self._dropped = 0
         self._failure: str | None = None
+        # Earliest flight time written since a chunk last reached the file: what a failure loses.
+        self._unflushed_from: float | None = None
+        self._lost_from: float | None = None
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name=f"flightlog:{path.name}", daemon=True)
 
@@ -400,7 +215,8 @@ class FlightLog:
             kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
             if compression not in kinds:
                 raise ValueError(f"compression must be one of {sorted(kinds)}, got {compression!r}")
-            writer = Writer(stream, chunk_size=chunk_size, compression=kinds[compression])
+            counted = _CountedStream(stream)
+            writer = Writer(counted, chunk_size=chunk_size, compression=kinds[compression])
             writer.start(profile="", library=f"cfknode {software_version}")
             config_json = json.dumps(_finite_or_none(dict(config)), default=_to_json, sort_keys=True)
             writer.add_metadata(METADATA_NAME, {
@@ -420,7 +236,7 @@ class FlightLog:
             stream.close()
             path.unlink(missing_ok=True)  # no empty, unreadable file left behind
             raise
-        log = cls(path, stream, writer, topics, flush_interval)
+        log = cls(path, counted, writer, topics, flush_interval)
         # /config is a flush channel: with it the file's first chunk (schemas, channels) is on disk now.
         log.write("/config", 0.0, {"software_version": software_version, "config": json.loads(config_json)})
         log._flusher.start()
@@ -444,9 +260,30 @@ class FlightLog:
         return self._failure
 
     @property
+    def lost_from(self) -> float | None:
+        """After a write failure: the flight time (s) from which messages did not reach the file.
+
+        The failed write takes the open chunk's messages with it, so this is the earliest time
+        written since a chunk last reached the file. None if the log never failed, or lost no message.
+        """
+        return self._lost_from
+
+    @property
     def messages_dropped(self) -> int:
         """Messages discarded after a write failure."""
         return self._dropped
+
+    def incomplete(self) -> str | None:
+        """A phrase for the flight's summary when the log stopped writing, else None.
+
+        Says from which flight time messages are missing and why, e.g. "incomplete from
+        t = 12.34 s (/path: No space left on device; 4100 messages not written)".
+        """
+        if self._failure is None:
+            return None
+        where = (f"from t = {self._lost_from:.2f} s" if self._lost_from is not None
+                 else "at its end (index and footer)")
+        return f"incomplete {where} ({self._failure}; {self._dropped} messages not written)"
 
     def write(self, topic: str, t: float, msg: Mapping[str, Any]) -> None:
         """Log ``msg`` on ``topic`` at flight time ``t`` (s). numpy values become plain JSON.
@@ -476,12 +313,17 @@ class FlightLog:
             if self._failure is not None:
                 self._dropped += 1
                 return
+            if self._unflushed_from is None or t < self._unflushed_from:
+                self._unflushed_from = t
+            writes = self._stream.writes
             try:
                 self._writer.add_message(channel_id, ns, text.encode(), ns)
             except OSError as exc:  # the add closed a full chunk, and that write failed
                 self._dropped += 1
                 self._fail(exc)
                 return
+            if self._stream.writes != writes:  # it closed a chunk (this message its last), now in the file
+                self._unflushed_from = None
             self._count += 1
             self._dirty = True
             if flush_now or time.monotonic() - self._last_flush >= self._flush_interval:
@@ -528,10 +370,12 @@ class FlightLog:
 
     def _fail(self, exc: OSError) -> None:
         self._failure = f"{self._path}: {exc.strerror or exc}"
+        self._lost_from = self._unflushed_from
         _logger.error("flight log stopped writing: %s", self._failure)
 
     def _flush_locked(self) -> None:
         self._writer.flush()
+        self._unflushed_from = None
         self._dirty = False
         self._last_flush = time.monotonic()
 
@@ -550,155 +394,3 @@ class FlightLog:
                         self._fail(exc)
 
 
-# --- Reader ------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LogData:
-    """A flight log read back: messages per topic (dicts, as written plus ``t``), config, version.
-
-    ``truncated`` is True when the file has no MCAP footer (the writer never closed it);
-    ``note`` says where and why reading stopped early, or is "".
-    """
-
-    path: Path
-    messages: Mapping[str, list[dict[str, Any]]]
-    config: dict[str, Any] | None
-    software_version: str | None
-    metadata: Mapping[str, Mapping[str, str]]
-    schemas: Mapping[str, Mapping[str, Any]]
-    truncated: bool
-    note: str = ""
-
-    @property
-    def topics(self) -> list[str]:
-        return list(self.messages)
-
-    def topic(self, name: str) -> list[dict[str, Any]]:
-        """Messages of ``name`` in file order ([] if the topic has none)."""
-        return self.messages.get(name, [])
-
-    def times(self, topic: str) -> np.ndarray:
-        return np.array([m["t"] for m in self.topic(topic)], dtype=float)
-
-    def array(self, topic: str, field_name: str) -> np.ndarray:
-        """One field of every message of ``topic`` as an array: (n,) for scalars, (n, k) for vectors.
-
-        Numbers: float, with NaN for null and for messages lacking the field. Booleans: bool
-        (all messages must have the field). Strings: an object array.
-        """
-        msgs = self.topic(topic)
-        values = [m.get(field_name) for m in msgs]
-        present = [v for v in values if v is not None]
-        if msgs and not present and not any(field_name in m for m in msgs):
-            raise KeyError(f"{self.path.name}: no field {field_name!r} on {topic}")
-        if present and all(isinstance(v, bool) for v in present):
-            if len(present) != len(values):
-                raise ValueError(f"{self.path.name}: boolean field {field_name!r} on {topic} has gaps")
-            return np.array(values, dtype=bool)
-        if present and isinstance(present[0], str):
-            return np.array(values, dtype=object)
-        width = len(present[0]) if present and isinstance(present[0], list) else None
-        if width is None:
-            return np.array([np.nan if v is None else v for v in values], dtype=float).reshape(len(values))
-        gap = [None] * width
-        return np.array([gap if v is None else v for v in values], dtype=float).reshape(len(values), width)
-
-
-def read_log(path: str | Path) -> LogData:
-    """Read a flight log; a truncated file is read up to its last complete record.
-
-    Raises ``LogError`` (one line, naming the file) when the file is missing or not MCAP.
-    """
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read flight log ({exc.strerror or exc})") from exc
-    if len(data) == 0:
-        raise LogError(f"{path}: empty file, not an MCAP flight log")
-    if not data.startswith(MCAP_MAGIC):
-        raise LogError(f"{path}: not an MCAP flight log (bad magic bytes)")
-
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: dict[str, list[dict[str, Any]]] = {}
-    metadata: dict[str, dict[str, str]] = {}
-    note = ""
-    complete = False
-    view = memoryview(data)
-    pos = len(MCAP_MAGIC)
-
-    def take(record: Any) -> None:
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel):
-            channels[record.id] = record
-            messages.setdefault(record.topic, [])
-        elif isinstance(record, Message):
-            channel = channels.get(record.channel_id)
-            if channel is not None and channel.message_encoding == "json":
-                messages[channel.topic].append(json.loads(record.data))
-
-    while True:
-        if pos + 9 > len(data):
-            note = note or f"truncated after byte {pos} (no footer)"
-            break
-        opcode, length = struct.unpack_from("<BQ", data, pos)
-        body_start = pos + 9
-        if length > len(data) - body_start:
-            note = f"truncated inside a record at byte {pos} (opcode {opcode:#04x})"
-            break
-        stream = ReadDataStream(io.BytesIO(view[body_start:body_start + length]))
-        try:
-            if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-                take((Schema if opcode == Opcode.SCHEMA else Channel).read(stream))
-            elif opcode == Opcode.MESSAGE:
-                take(Message.read(stream, length))
-            elif opcode == Opcode.CHUNK:
-                for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
-                    take(record)
-            elif opcode == Opcode.METADATA:
-                record = Metadata.read(stream)
-                metadata[record.name] = dict(record.metadata)
-            elif opcode == Opcode.FOOTER:
-                Footer.read(stream)
-                complete = data[body_start + length:body_start + length + len(MCAP_MAGIC)] == MCAP_MAGIC
-                if not complete:
-                    note = "footer without closing magic"
-                break
-        except _CORRUPT as exc:
-            # A complete but unreadable record: corruption, not a crash cut. Keep what came before.
-            note = f"unreadable record at byte {pos} (opcode {opcode:#04x}): {type(exc).__name__}: {exc}"
-            break
-        pos = body_start + length
-
-    return LogData(
-        path=path,
-        messages=messages,
-        config=_config_of(metadata, messages),
-        software_version=_version_of(metadata, messages),
-        metadata=metadata,
-        schemas={
-            c.topic: json.loads(schemas[c.schema_id].data)
-            for c in channels.values()
-            if c.schema_id in schemas and schemas[c.schema_id].encoding == "jsonschema"
-        },
-        truncated=not complete,
-        note=note,
-    )
-
-
-def _config_of(metadata: Mapping[str, Mapping[str, str]], messages: Mapping[str, list[dict]]) -> dict | None:
-    if METADATA_NAME in metadata and "config" in metadata[METADATA_NAME]:
-        return json.loads(metadata[METADATA_NAME]["config"])
-    first = messages.get("/config")
-    return first[0].get("config") if first else None
-
-
-def _version_of(metadata: Mapping[str, Mapping[str, str]], messages: Mapping[str, list[dict]]) -> str | None:
-    if METADATA_NAME in metadata and "software_version" in metadata[METADATA_NAME]:
-        return metadata[METADATA_NAME]["software_version"]
-    first = messages.get("/config")
-    return first[0].get("software_version") if first else None

@@ -19,7 +19,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from cfknode.flight.flightlog import LogData
+from cfknode.flight.logreader import LogData
 
 __all__ = [
     "FlightSummary",

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from cfknode.flight.flightlog import FlightLog, read_log
+from cfknode.flight.logreader import replay_mocap
 from cfknode.mocap.replay import ReplayError, ReplayMocap
 from cfknode.mocap.source import PoseSource
 
 
 def _from_log(log, time_offset: float = 0.0) -> ReplayMocap:
-    data = read_log(log) if not hasattr(log, "topic") else log
-    return ReplayMocap.from_messages(data.topic("/mocap"), name=str(data.path), time_offset=time_offset)
+    return replay_mocap(log, time_offset=time_offset)
 
 LATENCY = 0.004
 

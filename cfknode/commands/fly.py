@@ -126,5 +126,7 @@ def run(args: argparse.Namespace) -> int:
         render_summary(result.summary, console)
     # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
     print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
-    # 0 only for a mission flown to the end; a watchdog landing, a stop or a refusal is 1.
-    return 0 if result.outcome.state.value == "LANDED" and result.outcome.cause == "complete" else 1
+    # 0 only for a mission flown to the end and fully logged; a watchdog landing, a stop, a
+    # refusal or a log that stopped writing (recorded data lost) is 1.
+    complete = result.outcome.state.value == "LANDED" and result.outcome.cause == "complete"
+    return 0 if complete and result.log_incomplete is None else 1

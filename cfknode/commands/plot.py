@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from cfknode.cli import UsageError
@@ -25,7 +26,7 @@ def default_out_dir(logs: list[str]) -> Path:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from cfknode.flight.flightlog import LogError
+    from cfknode.flight.logformat import LogError
     from cfknode.plotting import DPI, plot_logs
 
     out = Path(args.out) if args.out else default_out_dir(args.logs)
@@ -41,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
     for trace in report.traces:
         cut = f", [yellow]truncated at {trace.t_end:.2f} s[/]" if trace.truncated else ""
         console.print(f"{trace.path}: {trace.name}, {len(trace.t)} ticks{cut}")
+        if trace.damage:  # what was skipped, and from when data is missing: one line per log
+            print(f"cfknode: warning: {trace.path}: {trace.damage}", file=sys.stderr)
     for name, path in report.files.items():
         console.print(f"  {name:<15} {path}")
     return 0

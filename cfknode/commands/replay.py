@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from cfknode.flight.flightlog import LogError, read_log
+    from cfknode.flight.logreader import LogError, read_log, require_messages
     from cfknode.replay import COMMAND_FIELDS, ReplayError, load_residual_model, logged_config, plot_replay, \
         replay_log, write_csv
 
@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
         overrides["controller.qp_solver"] = args.qp_solver
     try:
         log = read_log(args.log)
+        require_messages(log, ("/state", "/command"))
         cfg, dropped = logged_config(log, overrides)
         model, model_name = load_residual_model(args.model) if args.model else (None, None)
         result = replay_log(log, cfg, model, model_name)
@@ -52,12 +53,15 @@ def run(args: argparse.Namespace) -> int:
                     + (f" + {model_name}" if model_name else ""))
 
     rms, worst = result.rms(), result.max_abs()
+    if log.note:  # what the reader skipped, and from when data is missing
+        print(f"cfknode: warning: {log.path}: {log.note}", file=sys.stderr)
     if args.json:
         print(json.dumps({
             "log": str(log.path), "ticks": result.ticks, "skipped": dict(result.skipped),
             "controller": result.controller, "model": model_name, "source_changes": result.source_changes(),
             "reference_mismatch_m": result.reference_mismatch_m, "notes": list(result.notes),
             "rms": {k: _finite(v) for k, v in rms.items()}, "max": {k: _finite(v) for k, v in worst.items()},
+            "log_damage": log.damage.to_dict(),
         }))
         return 0
     console = Console()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 from cfknode.cli import UsageError
@@ -35,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from cfknode.models.training import make_dataset, train_new_model
 
     console = Console()
-    segments = segments_from_logs(args.log)
+    segments = segments_from_logs(args.log, lambda line: print(f"cfknode: warning: {line}", file=sys.stderr))
     try:
         initial = load_model(args.init) if args.init else None
     except ModelFileError as exc:
