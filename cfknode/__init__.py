@@ -32,9 +32,9 @@ _EXPORTS = {
     "StateEstimate": "cfknode.flight.estimator",
     "TickInfo": "cfknode.flight.controller",
     "VehicleConfig": "cfknode.kernel.vehicle",
-    "load_config": "cfknode.config",
+    "load_config": "cfknode.app.config",
     "make_trajectory": "cfknode.flight.trajectory",
-    "online_learning": "cfknode.online_wiring",
+    "online_learning": "cfknode.app.learning",
     "read_setpoint": "cfknode.kernel.setpoint",
 }
 

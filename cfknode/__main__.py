@@ -1,5 +1,5 @@
 import sys
 
-from cfknode.cli import main
+from cfknode.app.cli import main
 
 sys.exit(main())

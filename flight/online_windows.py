@@ -12,7 +12,7 @@ import numpy as np
 
 from cfknode.models.trainer_process import Window
 
-# Same rules as offline training data (cfknode.flight_data, which imports torch through its Segment):
+# Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
 MIN_HEIGHT = 0.1  # m above the ground: ground effect and contact are not the model's business
 ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks were not
 

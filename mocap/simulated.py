@@ -78,7 +78,7 @@ class SimulatedMocap:
     def from_config(
         cls, sim: _SteppedSim, sim_cfg: Any, outages: Sequence[tuple[float, float]] = ()
     ) -> "SimulatedMocap":
-        """Build from ``cfg.sim`` (a ``cfknode.config.SimConfig``), with optional outage windows."""
+        """Build from ``cfg.sim`` (a ``cfknode.app.config.SimConfig``), with optional outage windows."""
         return cls(
             sim,
             rate_hz=sim_cfg.mocap_rate_hz,

@@ -11,7 +11,7 @@ import math
 import sys
 from pathlib import Path
 
-from cfknode.flight.flightlog import FlightLog
+from cfknode.app.logs.writer import FlightLog
 
 CONFIG = {
     "controller": {"kind": "mpc", "solver": "rti", "rate_hz": 400.0},

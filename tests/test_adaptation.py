@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.flight.adaptation import (
     AdaptationSettings,
     FastAdaptation,
@@ -18,12 +18,12 @@ from cfknode.flight.adaptation import (
     rebase_offset,
     settings_from_controller,
 )
-from cfknode.flight.flightlog import read_log
+from cfknode.app.logs.writer import read_log
 from cfknode.flight.mellinger import CommandShaping, shape_force
 from cfknode.flight.mpc import TranslationalMpc, acceleration_bounds, build_qp_problem
 from cfknode.kernel.reference import RefSamples
 from cfknode.flight.online_windows import WindowRecorder
-from cfknode.mission import run_flight
+from cfknode.app.mission import run_flight
 
 G = 9.81
 RATE = 400.0

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from cfknode.bench_hierarchical import CONTROLLERS, CellResult, markdown
-from cfknode.cli import main
+from cfknode.app.bench.hierarchical import CONTROLLERS, CellResult, markdown
+from cfknode.app.cli import main
 
 pytest.importorskip("torch")
 

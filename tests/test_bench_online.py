@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from cfknode.bench_online import PAPER, CellReport, Run, markdown, run_cell
-from cfknode.cli import main
+from cfknode.app.bench.online import PAPER, CellReport, Run, markdown, run_cell
+from cfknode.app.cli import main
 
 pytest.importorskip("torch")
 

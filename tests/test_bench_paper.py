@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from cfknode.cli import main
+from cfknode.app.cli import main
 
 
 @pytest.fixture(scope="module")

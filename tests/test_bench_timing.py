@@ -4,8 +4,8 @@ import dataclasses
 
 import numpy as np
 
-from cfknode.bench_timing import Timing, mpc_closed_loop, swap_latency, synthetic_queue
-from cfknode.config import load_config
+from cfknode.app.bench.timing import Timing, mpc_closed_loop, swap_latency, synthetic_queue
+from cfknode.app.config import load_config
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
 

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import yaml
 
-from cfknode.calibrate import (
+from cfknode.app.backends.calibrate import (
     CalibrationError,
     calibrate,
     calibration_config,
     estimate_hover,
     hover_window,
 )
-from cfknode.config import ConfigError, load_config
-from cfknode.flight.flightlog import FlightLog, read_log
-from cfknode.robots import load_robot
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.backends.robots import load_robot
 from test_hardware_backend import SHORT_HOVER, fly_cf, robots_file
 
 G = 9.81

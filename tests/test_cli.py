@@ -5,8 +5,8 @@ import sys
 
 import pytest
 
-from cfknode.cli import main
-from cfknode.robots import example_robots_path
+from cfknode.app.cli import main
+from cfknode.app.backends.robots import example_robots_path
 
 
 @pytest.mark.parametrize(
@@ -105,7 +105,7 @@ def test_a_missing_crazyradio_shows_only_the_clean_message(tmp_path):
 def test_library_log_records_are_held_back_unless_verbose(capsys):
     import logging
 
-    from cfknode.cli_logging import CommandLogHandler, command_logging
+    from cfknode.app.cli_logging import CommandLogHandler, command_logging
 
     with command_logging(verbose=False) as handler:
         logging.getLogger("cflib.crazyflie").error("driver trace")

@@ -2,7 +2,7 @@
 
 import pytest
 
-from cfknode.config import ConfigError, load_config, parse_override
+from cfknode.app.config import ConfigError, load_config, parse_override
 
 
 def test_defaults_load_and_are_frozen():

@@ -7,8 +7,8 @@ import typing
 
 import pytest
 
-from cfknode.config import Config, ConfigError, load_config, parse_override
-from cfknode.config_bounds import BOUNDS, Bound, leaves
+from cfknode.app.config import Config, ConfigError, load_config, parse_override
+from cfknode.app.config_bounds import BOUNDS, Bound, leaves
 
 
 @pytest.mark.parametrize(

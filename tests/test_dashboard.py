@@ -16,7 +16,7 @@ import pexpect
 import pytest
 from rich.console import Console
 
-from cfknode.flight.dashboard import (
+from cfknode.app.ui.dashboard import (
     DashboardStarter,
     FrameMeter,
     KeyReader,
@@ -25,7 +25,7 @@ from cfknode.flight.dashboard import (
     should_show_dashboard,
     with_dashboard,
 )
-from cfknode.flight.status import FlightStatus, ModelEntry
+from cfknode.app.ui.status import FlightStatus, ModelEntry
 
 PANELS = ("Supervisor", "Tracking", "Loop & MPC", "MPC", "Model queue", "Trainer", "Mocap", "Radio", "Battery",
           "Geofence", "Keys")
@@ -231,7 +231,7 @@ def _expect_panels(child: pexpect.spawn) -> None:
 
 def test_demo_flight_draws_the_dashboard_in_a_pseudo_terminal(tmp_path):
     child = pexpect.spawn(
-        sys.executable, ["-m", "cfknode.flight.dashboard", "--demo", "--log-dir", str(tmp_path),
+        sys.executable, ["-m", "cfknode.app.ui.dashboard", "--demo", "--log-dir", str(tmp_path),
                          "--set", "trajectory.duration=5.0"],
         dimensions=(40, 120), encoding="utf-8", timeout=120, cwd=str(tmp_path), env={**os.environ, "TERM": "xterm"},
     )
@@ -253,7 +253,7 @@ def test_demo_flight_draws_the_dashboard_in_a_pseudo_terminal(tmp_path):
 
 
 def test_cfknode_fly_draws_the_dashboard_in_a_pseudo_terminal(tmp_path):
-    from cfknode.commands import fly
+    from cfknode.app.commands import fly
 
     parser = argparse.ArgumentParser()
     fly.add_arguments(parser)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cfknode.config import EstimatorConfig, load_config
+from cfknode.app.config import EstimatorConfig, load_config
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.mocap.source import Pose
 from cfknode.models.quadrotor import euler_zyx_to_quat

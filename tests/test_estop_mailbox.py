@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from cfknode.cli import main
-from cfknode.flight.flightlog import read_log
+from cfknode.app.cli import main
+from cfknode.app.logs.writer import read_log
 from cfknode.safety import estop_mailbox as em
 from cfknode.safety.estop_mailbox import (
     EstopMailbox,
@@ -404,8 +404,8 @@ def test_estop_stops_a_real_flight_after_a_directory_was_planted(tmp_path):
 
 
 def test_simulated_flights_are_not_named_like_a_robot():
-    from cfknode.config import load_config
-    from cfknode.mission import estop_name
+    from cfknode.app.config import load_config
+    from cfknode.app.mission import estop_name
 
     assert estop_name(load_config(None, {})) == "sim-cf231"
     assert estop_name(load_config(None, {"backend": "cf", "hardware.robot": "cf5"})) == "cf5"

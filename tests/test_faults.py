@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.cli import main
-from cfknode.config import ConfigError, load_config
-from cfknode.flight.flightlog import read_log
-from cfknode.mission import FlightResult, run_flight
+from cfknode.app.cli import main
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.logs.writer import read_log
+from cfknode.app.mission import FlightResult, run_flight
 from cfknode.safety.estop_mailbox import live_flights
 
 
@@ -327,7 +327,7 @@ def test_the_dashboards_e_stop_key_lands_through_the_supervisor_hook(tmp_path):
 
 
 def test_radio_blackout_loses_packets_in_its_window_and_the_link_after_100():
-    from cfknode.config import FaultWindow
+    from cfknode.app.config import FaultWindow
     from cfknode.sim_backend.crazyflie import SimCrazyflie
     from cfknode.sim_backend.faults import RadioBlackout
 
@@ -354,7 +354,7 @@ def test_radio_blackout_loses_packets_in_its_window_and_the_link_after_100():
 
 
 def test_gust_vehicle_blows_only_during_the_gust():
-    from cfknode.config import Gust
+    from cfknode.app.config import Gust
     from cfknode.sim_backend.faults import GustVehicle
 
     cfg = load_config(overrides={"sim.drag": [0.03, 0.03, 0.03], "sim.initial_position": [0.0, 0.0, 1.0]})
@@ -371,7 +371,7 @@ def test_gust_vehicle_blows_only_during_the_gust():
 
 
 def test_failing_solver_and_nan_model():
-    from cfknode.config import FaultWindow
+    from cfknode.app.config import FaultWindow
     from cfknode.flight.mpc import MpcSolution
     from cfknode.sim_backend.faults import FailingSolver, NanResidual
 
@@ -396,7 +396,7 @@ def test_failing_solver_and_nan_model():
     ],
 )
 def test_faults_that_cannot_be_injected_are_refused(overrides, fragment, tmp_path):
-    from cfknode.config import ConfigError
+    from cfknode.app.config import ConfigError
 
     with pytest.raises(ConfigError, match=re.escape(fragment)):
         run_flight(_cfg(tmp_path, None, **overrides))

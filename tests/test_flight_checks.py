@@ -6,10 +6,10 @@ import math
 
 import pytest
 
-from cfknode.config import ConfigError, load_config
+from cfknode.app.config import ConfigError, load_config
 from cfknode.flight.trajectory import make_trajectory
-from cfknode.flight_checks import refuse_unflyable
-from cfknode.safety.trajectory_fit import HEADROOM, fit_limits, limits_problem, trajectory_problem
+from cfknode.app.flight_checks import refuse_unflyable
+from cfknode.app.trajectory_fit import HEADROOM, fit_limits, limits_problem, trajectory_problem
 
 
 def _cfg(tmp_path, **overrides):

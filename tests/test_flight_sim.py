@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
-from cfknode.flight.flightlog import read_log
-from cfknode.mission import run_flight
+from cfknode.app.config import load_config
+from cfknode.app.logs.writer import read_log
+from cfknode.app.mission import run_flight
 
 # A short version of the default mission: same circle, fewer seconds on it.
 SHORT = {

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.flight.flightlog import (
+from cfknode.app.logs.writer import (
     CHANNELS,
     FlightLog,
     LogError,
@@ -218,7 +218,7 @@ def test_a_crash_loses_at_most_the_last_second(tmp_path: Path) -> None:
     script = textwrap.dedent(f"""
         import os, sys, time
         from datetime import datetime
-        from cfknode.flight.flightlog import FlightLog
+        from cfknode.app.logs.writer import FlightLog
         log = FlightLog.create({str(tmp_path)!r}, {{"a": 1}}, "v", "crash")
         start = time.time(); k = 0
         while time.time() - start < 1.6:
@@ -245,7 +245,7 @@ def test_a_full_disk_never_stops_the_flight(tmp_path: Path) -> None:
     # The file-size limit makes writes fail with EFBIG, as a full disk fails them with ENOSPC.
     script = textwrap.dedent(f"""
         import resource, signal
-        from cfknode.flight.flightlog import FlightLog
+        from cfknode.app.logs.writer import FlightLog
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (30_000, resource.RLIM_INFINITY))
         log = FlightLog.create({str(tmp_path)!r}, {{"a": 1}}, "v", "full", chunk_size=2048, compression="none")

@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from cfknode.config import Config, ConfigError, load_config
+from cfknode.app.config import Config, ConfigError, load_config
 from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
-from cfknode.flight.flightlog import FlightLog, read_log
+from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.flight.loop import FlightParts, fly
-from cfknode.flight.radio import RadioError
+from cfknode.app.backends.radio import RadioError
 from cfknode.flight.trajectory import make_trajectory
-from cfknode.hardware import cf_session, flight_config, hardware_backend, robot_for, simulated_hardware
-from cfknode.mission import build_controller, build_supervisor
+from cfknode.app.backends.crazyflie import cf_session, flight_config, hardware_backend, robot_for, simulated_hardware
+from cfknode.app.mission import build_controller, build_supervisor
 from cfknode.mocap.motioncapture_source import MocapError
-from cfknode.robots import example_robots_path, load_robot
+from cfknode.app.backends.robots import example_robots_path, load_robot
 from cfknode.safety.preflight import PreflightError
 from cfknode.safety.supervisor import State, Supervisor, SupervisorInputs
 from cfknode.safety.watchdogs import radio_link_status
@@ -228,7 +228,7 @@ def test_a_disabled_robot_is_refused(tmp_path: Path) -> None:
 
 def test_run_flight_with_backend_cf_against_the_simulator(tmp_path: Path) -> None:
     """`cfknode fly --backend cf` takes the same mission path as the simulator: run_flight end to end."""
-    from cfknode.mission import run_flight
+    from cfknode.app.mission import run_flight
 
     res = run_flight(cf_config(tmp_path), name_hint="cf-run-flight")
     # A loaded machine may push a few wall-clock solves past their deadline: the fallback flies those.

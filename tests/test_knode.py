@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.models.knode import KnodeQueue, ResidualNet, TrainingResidual, from_torch_queue, residual_numpy, to_torch_queue
 from cfknode.models.modelfile import Normalisation
 from cfknode.models.quadrotor import torch_backend, translational_rhs

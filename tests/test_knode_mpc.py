@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from cfknode.cli import main
-from cfknode.config import ConfigError, load_config
-from cfknode.mission import run_flight
+from cfknode.app.cli import main
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.mission import run_flight
 
 torch = pytest.importorskip("torch")
 
@@ -43,7 +43,7 @@ def test_knode_mpc_halves_the_tracking_error(trained):
 
 
 def test_one_step_error_on_a_held_out_log_halves(trained):
-    from cfknode.flight_data import segments_from_logs
+    from cfknode.app.logs.training_data import segments_from_logs
     from cfknode.models.knode import to_torch_queue
     from cfknode.models.modelfile import load_model
     from cfknode.models.training import make_dataset, one_step_rmse

@@ -330,7 +330,7 @@ def test_pm_state_goes_low_after_five_seconds_under_threshold(connected: tuple[F
 
 
 def test_real_simulator_behind_stock_cflib() -> None:
-    from cfknode.config import load_config
+    from cfknode.app.config import load_config
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 
     sim = SimCrazyflie(load_config().vehicle, load_config().sim)
@@ -430,7 +430,7 @@ def test_link_statistics_reach_cflib_callbacks(connected: tuple[FakeSim, Crazyfl
 def test_stock_cflib_signs_and_thrust_clamp_on_the_real_simulator() -> None:
     """Acceptance: through cflib and sim://, +pitch is nose down (+x), +roll is right side down
     (-y), +yaw rate turns clockwise, thrust is clamped to 60000 and zeroed below 1000."""
-    from cfknode.config import load_config
+    from cfknode.app.config import load_config
     from cfknode.models.quadrotor import quat_to_euler_zyx
     from cfknode.sim_backend.crazyflie import SimCrazyflie
 

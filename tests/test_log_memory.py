@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfknode.plotting import read_for_plot
+from cfknode.app.ui.plotting import read_for_plot
 from synthetic_log import write_synthetic_flight
 
 BOUND_MB = 300.0
@@ -21,7 +21,7 @@ BOUND_MB = 300.0
 # getrusage's ru_maxrss survives exec and would report pytest's own peak at the fork.
 PLOT_AND_MEASURE = """
 import resource, sys
-from cfknode.cli import main
+from cfknode.app.cli import main
 code = main(["plot", sys.argv[1], "--out", sys.argv[2]])
 try:
     with open("/proc/self/status") as f:

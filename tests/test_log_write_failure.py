@@ -9,9 +9,9 @@ from typing import Any, BinaryIO
 
 import pytest
 
-from cfknode.cli import main
+from cfknode.app.cli import main
 from cfknode.flight import flightlog
-from cfknode.flight.logreader import read_log
+from cfknode.app.logs.reader import read_log
 
 SHORT = [
     "--set", "trajectory.duration=1.5", "--set", "trajectory.takeoff_duration=1.0",

@@ -15,11 +15,11 @@ from typing import Any, Callable
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from cfknode.cli import main
-from cfknode.config import load_config
-from cfknode.flight.logformat import CHANNELS, MCAP_MAGIC
-from cfknode.flight.logreader import LogData, read_log, replay_mocap
-from cfknode.mission import run_flight
+from cfknode.app.cli import main
+from cfknode.app.config import load_config
+from cfknode.app.logs.format import CHANNELS, MCAP_MAGIC
+from cfknode.app.logs.reader import LogData, read_log, replay_mocap
+from cfknode.app.mission import run_flight
 from cfknode.mocap.replay import ReplayError, ReplayMocap
 
 SHORT = {

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.flight.mellinger import acc_to_setpoint
 from cfknode.kernel.setpoint import AttitudeSetpoint, thrust_command
 from cfknode.models.quadrotor import euler_zyx_to_quat, quat_to_rotation

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.mocap.simulated import SimulatedMocap, from_config
 from cfknode.mocap.source import MocapStats, Pose, PoseSource, RateMeter
 from cfknode.models.quadrotor import euler_zyx_to_quat

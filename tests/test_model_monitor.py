@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, mean_acceleration_error
 
 RATE = 400.0

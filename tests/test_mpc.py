@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.flight import mpc as mpc_module
 from cfknode.flight import mpc_codegen
 from cfknode.flight.mpc import (

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from cfknode.flight.mpc_full import (
+from cfknode.app.bench.paper.mpc_full import (
     FullMpcSpec,
     FullStateMpc,
     HybridRk4,
     rigid_body_rhs_jacobian,
 )
 from cfknode.models.quadrotor import NUMPY, casadi_backend, rigid_body_rhs, rk4_step
-from cfknode.models.rigid_body_knode import NumpyResidual, ResidualLayout, RigidBodyQueue
-from cfknode.paper.protocol import CrazyflieParams
+from cfknode.app.bench.paper.rigid_body_knode import NumpyResidual, ResidualLayout, RigidBodyQueue
+from cfknode.app.bench.paper.protocol import CrazyflieParams
 
 INERTIA = (1.43e-5, 1.43e-5, 2.89e-5)
 G = 9.81

@@ -1,6 +1,6 @@
 """Online learning in closed loop: short lockstep flights through the whole stack with the trainer process.
 
-``fly_online`` flies through ``cfknode.mission.run_flight``, exactly as ``cfknode fly --online`` does.
+``fly_online`` flies through ``cfknode.app.mission.run_flight``, exactly as ``cfknode fly --online`` does.
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cfknode.config import Config, load_config
-from cfknode.flight.flightlog import check_message, read_log
+from cfknode.app.config import Config, load_config
+from cfknode.app.logs.writer import check_message, read_log
 from cfknode.flight.loop import FlightRecord
 from cfknode.flight.online import OnlineLearner
-from cfknode.flight.summary import FlightSummary
-from cfknode.mission import run_flight
+from cfknode.app.ui.summary import FlightSummary
+from cfknode.app.mission import run_flight
 
 # The default 0.5 m circle, shortened; the mass grows 30 % one second into the pattern (t = 3 s).
 SHORT = {

@@ -9,14 +9,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.online import OnlineLearner
 from cfknode.flight.trainer_client import TrainerFault
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.trainer_process import TrainOutcome, TrainRequest
-from cfknode.online_wiring import learner_settings
+from cfknode.app.learning import learner_settings
 from fakes import Est, ListLog, Tick
 
 PERIOD = 1.0 / 400.0

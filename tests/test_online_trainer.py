@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cfknode.config import FaultInjection, load_config
+from cfknode.app.config import FaultInjection, load_config
 from cfknode.flight.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.knode import KnodeQueue, to_torch_queue
 from cfknode.models.modelfile import Normalisation
@@ -23,7 +23,7 @@ from cfknode.models.trainer_process import (
     _train_round,
     renormalise,
 )
-from cfknode.online_wiring import trainer_settings
+from cfknode.app.learning import trainer_settings
 
 RATE = 400.0
 

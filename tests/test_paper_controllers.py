@@ -8,10 +8,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cfknode.models.rigid_body_knode import NumpyResidual, TrainSettings
-from cfknode.paper.controllers import Formulation, GeometricController, mpc_reference
-from cfknode.paper.protocol import ChordCircle, MassEvent, PaperProtocol
-from cfknode.paper.runner import offline_model, simulate
+from cfknode.app.bench.paper.rigid_body_knode import NumpyResidual, TrainSettings
+from cfknode.app.bench.paper.controllers import Formulation, GeometricController, mpc_reference
+from cfknode.app.bench.paper.protocol import ChordCircle, MassEvent, PaperProtocol
+from cfknode.app.bench.paper.runner import offline_model, simulate
 
 
 def test_paper_nominal_mpc_reproduces_table_1():

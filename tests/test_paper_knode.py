@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cfknode.models.modelfile import queue_weights
-from cfknode.models.rigid_body_knode import (
+from cfknode.app.bench.paper.rigid_body_knode import (
     NumpyResidual,
     OneStepPairs,
     Physics,
@@ -20,7 +20,7 @@ from cfknode.models.rigid_body_knode import (
     fit_output_layer,
     train_newest,
 )
-from cfknode.paper.protocol import PaperPlant, PaperProtocol
+from cfknode.app.bench.paper.protocol import PaperPlant, PaperProtocol
 
 
 def _z(rng: np.random.Generator, n: int) -> np.ndarray:

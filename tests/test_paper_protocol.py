@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from cfknode.paper.protocol import (
+from cfknode.app.bench.paper.protocol import (
     Actuators,
     ChordCircle,
     CrazyflieParams,

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.cli import UsageError
-from cfknode.commands import plot as plot_command
-from cfknode.config import load_config
-from cfknode.flight.flightlog import FlightLog, read_log
-from cfknode.mission import run_flight
-from cfknode.plotting import PLOTS, plot_logs, trace_from_log
+from cfknode.app.cli import UsageError
+from cfknode.app.commands import plot as plot_command
+from cfknode.app.config import load_config
+from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.mission import run_flight
+from cfknode.app.ui.plotting import PLOTS, plot_logs, trace_from_log
 
 SHORT = {
     "trajectory.duration": 1.5,
@@ -119,10 +119,10 @@ def test_plot_command_rejects_a_file_that_is_not_a_log(tmp_path):
 
 
 def test_the_log_documentation_lists_every_channel():
-    from cfknode.flight.flightlog import channels_markdown
+    from cfknode.app.logs.writer import channels_markdown
 
     docs = (Path(__file__).parents[1] / "docs" / "logs.md").read_text()
     assert channels_markdown() in docs, (
         "docs/logs.md is out of date with flightlog.CHANNELS: paste the output of "
-        "python -c 'from cfknode.flight.flightlog import channels_markdown; print(channels_markdown())'"
+        "python -c 'from cfknode.app.logs.writer import channels_markdown; print(channels_markdown())'"
     )

@@ -9,9 +9,9 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
-from cfknode.flight.radio import CflibRadio, HardwareRadio, RadioError
+from cfknode.app.backends.radio import CflibRadio, HardwareRadio, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
 from fakes import RecordingFirmware
 

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.cli import UsageError
-from cfknode.commands import replay as replay_command
-from cfknode.config import ConfigError, load_config
-from cfknode.flight.flightlog import read_log
-from cfknode.mission import run_flight
+from cfknode.app.cli import UsageError
+from cfknode.app.commands import replay as replay_command
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.logs.writer import read_log
+from cfknode.app.mission import run_flight
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation, save_model
-from cfknode.replay import COMMAND_FIELDS, ReplayError, load_residual_model, logged_config, replay_log, write_csv
+from cfknode.app.replay import COMMAND_FIELDS, ReplayError, load_residual_model, logged_config, replay_log, write_csv
 
 SHORT = {
     "trajectory.duration": 1.5,

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.flight.flightlog import FlightLog, read_log
-from cfknode.flight.logreader import replay_mocap
+from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.logs.reader import replay_mocap
 from cfknode.mocap.replay import ReplayError, ReplayMocap
 from cfknode.mocap.source import PoseSource
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cfknode.config import ConfigError, load_config
-from cfknode.robots import (
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.backends.robots import (
     example_robots_path,
     load_robot,
     load_robots,

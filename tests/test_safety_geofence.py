@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cfknode.config import ConfigError, load_config
+from cfknode.app.config import ConfigError, load_config
 from cfknode.kernel.reference import RefSamples
 from cfknode.safety.geofence import Geofence, clamp_reference
 from cfknode.safety.landing import Landing

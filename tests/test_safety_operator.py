@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from cfknode.cli import main
+from cfknode.app.cli import main
 from cfknode.safety.estop_mailbox import find_flight, live_flights, post
 from cfknode.safety.operator import EstopMailbox, estop_watch, mailbox_dir, sigint_handler
 

@@ -8,9 +8,9 @@ import threading
 import numpy as np
 import pytest
 
-from cfknode.config import ConfigError, load_config
+from cfknode.app.config import ConfigError, load_config
 from cfknode.flight.estimator import StateEstimate
-from cfknode.flight.flightlog import check_message
+from cfknode.app.logs.writer import check_message
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.mocap.source import Pose
@@ -19,7 +19,7 @@ from cfknode.safety.supervisor import (
     BLIND, CUTOFF_HOLD_S, FLY, OFF, STOP_HOLD_S, State, Supervisor, SupervisorInputs,
 )
 from cfknode.safety.watchdogs import LinkStatus
-from cfknode.mission import build_supervisor
+from cfknode.app.mission import build_supervisor
 
 RATE = 400.0
 PERIOD = 1.0 / RATE

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.models.quadrotor import quat_to_euler_zyx
 from cfknode.sim_backend.crazyflie import SimCrazyflie
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.sim_backend.firmware import (
     SUPERVISOR_PERIOD,
     Firmware,

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from cfknode.config import MassChange, load_config
+from cfknode.app.config import MassChange, load_config
 from cfknode.models.quadrotor import NUMPY, euler_zyx_to_quat, quat_to_euler_zyx, quat_to_rotation, rigid_body_rhs
 from cfknode.sim_backend.battery import Battery
 from cfknode.sim_backend.scenario import drag_force, mass_at

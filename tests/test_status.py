@@ -6,8 +6,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cfknode.flight.flightlog import FlightLog, read_log
-from cfknode.flight.status import (
+from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.ui.status import (
     FlightStatus,
     StatusTap,
     battery_poller,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from cfknode.flight.flightlog import FlightLog, read_log
-from cfknode.flight.summary import (
+from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.ui.summary import (
     FlightSummary,
     compute_summary,
     render_summary,

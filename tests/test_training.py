@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cfknode.config import load_config
+from cfknode.app.config import load_config
 from cfknode.models import training
 from cfknode.models.knode import KnodeQueue, from_torch_queue, residual_numpy, to_torch_queue
 from cfknode.models.modelfile import load_model, save_model

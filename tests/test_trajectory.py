@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cfknode.config import TrajectoryConfig, load_config
+from cfknode.app.config import TrajectoryConfig, load_config
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.kernel.reference import RefSamples
 

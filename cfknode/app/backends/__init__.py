@@ -1,0 +1,1 @@
+"""Backends: the simulator and a Crazyflie (real, or the simulator behind sim://)."""

@@ -1,0 +1,1 @@
+"""One module per ``cfknode`` subcommand (see ``cfknode.app.cli``)."""

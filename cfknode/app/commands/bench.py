@@ -1,0 +1,156 @@
+"""``cfknode bench``: reproducible benchmarks.  ``cfknode bench paper`` reproduces Table 1.
+
+Each benchmark is an entry of ``BENCHES`` (name -> help, argument setup, runner), and the
+paper benchmark's modes are entries of ``PAPER_MODES``: ``bench timing`` and
+``--mode hierarchical`` are additions there, not edits of what exists.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+from pathlib import Path
+from typing import Callable
+
+from cfknode.app.cli import UsageError
+
+HELP = ("benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures the real-time parts, "
+        "'online' flies the online-learning acceptance protocol")
+
+
+def _version() -> str:
+    """cfknode's version, with the git commit and "+dirty" when the checkout has changes (read-only git)."""
+    from cfknode import __version__
+
+    here = Path(__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5, cwd=here)
+        if rev.returncode == 0 and rev.stdout.strip():
+            dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], capture_output=True, timeout=5, cwd=here).returncode
+            return f"{__version__} (git {rev.stdout.strip()}{'+dirty' if dirty else ''})"
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return __version__
+
+
+# --- bench paper ---------------------------------------------------------------------------
+
+
+def _add_paper_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mode", choices=sorted(PAPER_MODES), default="full", help="full: 13-state MPC on thrust and moments")
+    p.add_argument(
+        "--formulation", choices=["paper", "default", "both"], default="both",
+        help="paper: the authors' code; default: cfknode's; both (default)",
+    )
+    p.add_argument("--quick", action="store_true", help="one cell, 3.5 s: a smoke test of every path (< 1 min)")
+    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def _run_paper(args: argparse.Namespace) -> int:
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is not a directory")
+    return PAPER_MODES[args.mode](args, out)
+
+
+def _paper_full(args: argparse.Namespace, out: Path) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from cfknode.app.bench.paper import report
+    from cfknode.app.bench.paper.suite import BenchPlan, Cell, run_plan
+
+    forms = ("paper", "default") if args.formulation == "both" else (args.formulation,)
+    plan = BenchPlan.quick(forms, args.seed) if args.quick else BenchPlan.full(forms, args.seed)
+    console = Console()
+    out.mkdir(parents=True, exist_ok=True)
+    command = (
+        f"cfknode bench paper --mode {args.mode} --formulation {args.formulation}"
+        + (" --quick" if args.quick else "") + f" --jobs {args.jobs} --seed {args.seed}"
+    )
+    n_tasks = len(plan.tasks())
+    console.print(f"bench paper --mode {args.mode}: {len(plan.cells)} cell(s) x {len(forms)} formulation(s), "
+                  f"{n_tasks} tasks on {args.jobs} process(es)")
+    with Progress(
+        TextColumn("[bold]bench paper"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("{task.fields[last]}"), console=console,
+    ) as bar:
+        task_id = bar.add_task("bench", total=n_tasks, last="")
+
+        def done(task, result) -> None:  # noqa: ANN001 - (Task, RunResult | OfflineInfo)
+            mse = getattr(result, "mse", None)
+            bar.update(task_id, advance=1, last=task.label + (f": {mse:.4f}" if mse is not None else ""))
+
+        results = run_plan(plan, jobs=args.jobs, on_done=done)
+    version = _version()
+    md = report.markdown(results, version, command)
+    stem = f"paper_{args.mode}" + ("_quick" if args.quick else "")
+    (out / f"{stem}.md").write_text(md + "\n")
+    report.write_json(out / f"{stem}.json", report.to_json(results, version, command))
+    plots = []
+    fig_cell = plan.cells[0] if args.quick else Cell(3.0, 1.2)
+    for name in forms:
+        path = out / f"{stem}_fig2_{name}.png"
+        if report.plot_fig2(results, name, fig_cell, path):
+            plots.append(path)
+    console.print(md)
+    console.print(f"wrote {out / (stem + '.md')}, {out / (stem + '.json')}" + "".join(f", {p}" for p in plots))
+    return 0
+
+
+def _paper_hierarchical(args: argparse.Namespace, out: Path) -> int:
+    from cfknode.app.bench.hierarchical import run_hierarchical
+
+    return run_hierarchical(args, out, _version())
+
+
+PAPER_MODES: dict[str, Callable[[argparse.Namespace, Path], int]] = {
+    "full": _paper_full,
+    "hierarchical": _paper_hierarchical,
+}
+
+
+def _add_timing_arguments(p: argparse.ArgumentParser) -> None:
+    from cfknode.app.bench.timing import add_timing_arguments
+
+    add_timing_arguments(p)
+
+
+def _run_timing(args: argparse.Namespace) -> int:
+    from cfknode.app.bench.timing import run_timing
+
+    return run_timing(args)
+
+def _add_online_arguments(p: argparse.ArgumentParser) -> None:
+    from cfknode.app.bench.online import add_online_arguments
+
+    add_online_arguments(p)
+
+
+def _run_online(args: argparse.Namespace) -> int:
+    from cfknode.app.bench.online import run_online
+
+    return run_online(args, _version())
+
+
+BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
+    "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
+    "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
+               _run_timing),
+    "online": ("issue 4's protocol: online vs nominal and offline KNODE-MPC under the paper's mass changes",
+               _add_online_arguments, _run_online),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="bench", required=True)
+    for name, (help_text, add, _) in BENCHES.items():
+        add(sub.add_parser(name, help=help_text, description=help_text))
+
+
+def run(args: argparse.Namespace) -> int:
+    return BENCHES[args.bench][2](args)

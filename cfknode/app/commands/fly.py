@@ -1,0 +1,132 @@
+"""``cfknode fly``: fly a mission (by default the simulated 0.5 m circle)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from typing import Any
+
+from cfknode.app.cli import UsageError
+from cfknode.app.config import Config, load_config, parse_override
+
+HELP = "fly a mission (default: the simulated 0.5 m circle)"
+NAME_MAX = 64  # the log file adds a 16-character timestamp; file names end at 255 bytes
+_NAME = re.compile(rf"[A-Za-z0-9._-]{{1,{NAME_MAX}}}")
+
+# CLI flag -> dotted config key. Flags are shortcuts; --set reaches every key.
+FLAGS: dict[str, str] = {
+    "backend": "backend",
+    "traj": "trajectory.kind",
+    "radius": "trajectory.radius",
+    "speed": "trajectory.speed",
+    "height": "trajectory.height",
+    "duration": "trajectory.duration",
+    "controller": "controller.kind",
+    "model": "controller.model",
+    "solver": "controller.solver",
+    "seed": "sim.seed",
+    "uri": "radio.uri",
+    "log_dir": "log.dir",
+    "robot": "hardware.robot",
+    "robots": "hardware.robots_file",
+    "mocap": "hardware.mocap_type",
+    "mocap_host": "hardware.mocap_host",
+}
+
+
+def add_config_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every command that builds a flight configuration shares."""
+    p.add_argument("--config", help="YAML file overriding the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+
+
+def add_hardware_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", choices=["sim", "cf"])
+    p.add_argument("--robot", help="robot in the robots file (also the mocap rigid-body name)")
+    p.add_argument("--robots", help="Crazyswarm2-style robots YAML (default: the packaged example)")
+    p.add_argument("--mocap", choices=["vicon", "optitrack", "qualisys", "vrpn", "mock"], help="motion capture type")
+    p.add_argument("--mocap-host", dest="mocap_host", help="motion capture host name or address")
+    p.add_argument("--force", action="store_true", help="fly despite failed pre-flight checks (logged)")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_config_arguments(p)
+    add_hardware_arguments(p)
+    p.add_argument("--traj", choices=["hover", "circle", "figure8"], help="trajectory kind")
+    p.add_argument("--radius", type=float, help="pattern radius [m]")
+    p.add_argument("--speed", type=float, help="pattern speed [m/s]")
+    p.add_argument("--height", type=float, help="flight height [m]")
+    p.add_argument("--duration", type=float, help="time on the pattern [s]")
+    p.add_argument("--controller", choices=["mpc", "knode-mpc", "geometric"])
+    p.add_argument("--model", help="KNODE model file: fly KNODE-MPC with it")
+    p.add_argument("--solver", choices=["rti", "ipopt"])
+    p.add_argument("--seed", type=int)
+    p.add_argument("--uri", help="radio URI (sim://0 in simulation)")
+    p.add_argument("--log-dir", dest="log_dir", help="directory for the flight log")
+    p.add_argument("--realtime", action="store_true", help="simulate against the wall clock instead of lockstep")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--headless", action="store_true", help="fly without the live dashboard")
+    p.add_argument("--online", action="store_true", help="learn the KNODE model in flight (config section online)")
+    p.add_argument("--paper-lockstep", dest="paper_lockstep", action="store_true",
+                   help="online learning as the paper's code does it: the simulation waits for every model "
+                        "(for reproduction only)")
+    p.add_argument("--name", default=None,
+                   help=f"name hint for the log file (up to {NAME_MAX} of A-Z a-z 0-9 . _ -)")
+
+
+def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) -> Config:
+    overrides: dict[str, Any] = {}
+    for flag, key in flags.items():
+        value = getattr(args, flag, None)
+        if value is not None:
+            overrides[key] = value
+    if getattr(args, "realtime", False):
+        overrides["sim.realtime"] = True
+    if getattr(args, "force", False):
+        overrides["hardware.force"] = True
+    if getattr(args, "online", False) or getattr(args, "paper_lockstep", False):
+        overrides["online.enabled"] = True
+    if getattr(args, "paper_lockstep", False):
+        overrides["online.paper_lockstep"] = True
+    for item in args.set:
+        key, value = parse_override(item)
+        overrides[key] = value
+    return load_config(args.config, overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.name is not None and not _NAME.fullmatch(args.name):
+        shown = args.name if len(args.name) <= 24 else args.name[:24] + "..."
+        raise UsageError(f"--name must be 1 to {NAME_MAX} of the characters A-Z a-z 0-9 . _ - "
+                         f"(it names the log file), got {shown!r} ({len(args.name)} characters)")
+    cfg = config_from_args(args)  # validate before importing the heavy parts
+    from rich.console import Console
+
+    from cfknode.app.ui.dashboard import should_show_dashboard
+    from cfknode.app.ui.summary import render_summary, summary_to_json
+    from cfknode.app.mission import MissionError, run_flight
+
+    console = Console(stderr=args.json)
+    t = cfg.trajectory
+    if not args.json:
+        console.print(
+            f"[bold]cfknode fly[/]: {cfg.backend} backend, {t.kind} r={t.radius} m at {t.speed} m/s for "
+            f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
+        )
+    show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
+    try:
+        result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None)
+    except MissionError as exc:
+        print(f"cfknode: error: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(summary_to_json(result.summary))
+    else:
+        render_summary(result.summary, console)
+    # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
+    print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
+    # 0 only for a mission flown to the end and fully logged; a watchdog landing, a stop, a
+    # refusal or a log that stopped writing (recorded data lost) is 1.
+    complete = result.outcome.state.value == "LANDED" and result.outcome.cause == "complete"
+    return 0 if complete and result.log_incomplete is None else 1

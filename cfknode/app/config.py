@@ -1,0 +1,359 @@
+"""Configuration: frozen dataclasses, filled from default.yaml, a user file and CLI overrides.
+
+The defaults live only in ``config/default.yaml`` (with their sources); the dataclasses
+are the schema. A wrong key, a wrong type or a missing file raises ``ConfigError`` whose
+one-line message names the key or the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import types
+import typing
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import yaml
+
+from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
+from cfknode.kernel.errors import ConfigError
+from cfknode.kernel.vehicle import Vec3, VehicleConfig
+from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
+from cfknode.safety.settings import SafetyConfig
+from cfknode.sim_backend.settings import FaultsConfig, FaultWindow, Gust, MassChange, SimConfig
+
+__all__ = [
+    "Config", "ConfigError", "ControllerConfig", "DashboardConfig", "EstimatorConfig", "FaultInjection", "FaultWindow",
+    "FaultsConfig", "Gust", "HardwareConfig", "KnodeConfig", "LogConfig", "MassChange", "OnlineConfig", "RadioConfig",
+    "SafetyConfig", "SimConfig", "TrainingConfig", "TrajectoryConfig", "Vec3", "VehicleConfig", "build_config",
+    "default_dict", "load_config", "parse_override", "read_yaml_mapping",
+]
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    enabled: bool
+    t_col: float
+    epochs: int
+    method: Literal["rk4", "euler", "dopri5"]
+    lr: float
+    weight_decay: float
+    warm_start: bool
+    replay_windows: int
+    paper_lockstep: bool
+    gate: bool
+    gate_min_pairs: int
+    gate_control_gain: tuple[float, float]
+    gate_max_velocity_gain: float
+    gate_max_cross_gain: float
+    trainer_timeout: float
+    max_restarts: int
+    start_time: float
+    rollback_ticks: int
+    rollback_fallbacks: int
+    monitor: bool
+    monitor_window_s: float
+    monitor_every_ticks: int
+    monitor_margin: float
+    monitor_floor: float
+    inject: FaultInjection
+
+
+@dataclass(frozen=True)
+class RadioConfig:
+    uri: str
+    tx_rate_hz: float
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    dir: str
+
+
+@dataclass(frozen=True)
+class DashboardConfig:
+    enabled: bool
+    refresh_hz: float
+
+
+@dataclass(frozen=True)
+class HardwareConfig:
+    robot: str
+    robots_file: str
+    mocap_type: Literal["vicon", "optitrack", "qualisys", "vrpn", "mock"]
+    mocap_host: str
+    mocap_connect_timeout: float
+    mocap_rate_hz: float
+    radio_connect_timeout: float
+    preflight_settle: float
+    preflight_position_tolerance: float
+    preflight_max_tilt_deg: float
+    force: bool
+    extpos_std: float
+    extquat_std: float
+    heartbeat_hz: float
+    reboot_after_heartbeat: bool
+    telemetry_hz: float
+    rw_cache: str
+
+
+@dataclass(frozen=True)
+class Config:
+    backend: Literal["sim", "cf"]
+    vehicle: VehicleConfig
+    controller: ControllerConfig
+    estimator: EstimatorConfig
+    trajectory: TrajectoryConfig
+    sim: SimConfig
+    knode: KnodeConfig
+    training: TrainingConfig
+    online: OnlineConfig
+    radio: RadioConfig
+    log: LogConfig
+    dashboard: DashboardConfig
+    safety: SafetyConfig
+    faults: FaultsConfig
+    hardware: HardwareConfig
+
+    def to_dict(self) -> dict[str, Any]:
+        return _plain(dataclasses.asdict(self))
+
+
+# Checks that a type alone cannot express: (key, predicate, what it must be).
+_RULES: tuple[tuple[str, Any, str], ...] = (
+    ("vehicle.mass", lambda v: v > 0, "> 0"),
+    ("vehicle.thrust_cmd_clamp", lambda v: 0 < v <= 65535, "in 1..65535"),
+    ("controller.rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
+    ("controller.horizon", lambda v: 2 <= v <= 200, "in 2..200"),
+    ("controller.dt", lambda v: v > 0, "> 0"),
+    ("controller.max_tilt_deg", lambda v: 0 < v < 80, "in (0, 80)"),
+    ("controller.min_thrust_fraction", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("controller.max_thrust_fraction", lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
+    ("controller.adaptation_settings.bandwidth_hz", lambda v: 0 < v <= 50, "in (0, 50] Hz"),
+    ("controller.adaptation_settings.max_offset", lambda v: v > 0, "> 0 m/s^2"),
+    ("controller.adaptation_settings.thrust_scale_bounds", lambda v: 0 < v[0] <= 1 <= v[1], "[low, high] with 0 < low <= 1 <= high"),
+    ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
+    ("controller.adaptation_settings.stale_pose_s", lambda v: v > 0, "> 0 s"),
+    ("controller.adaptation_settings.rebase_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
+    ("trajectory.radius", lambda v: v > 0, "> 0"),
+    ("trajectory.speed", lambda v: v > 0, "> 0"),
+    ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),
+    ("trajectory.duration", lambda v: v >= 0, ">= 0"),
+    ("trajectory.takeoff_duration", lambda v: v > 0, "> 0"),
+    ("trajectory.land_duration", lambda v: v > 0, "> 0"),
+    ("trajectory.settle_duration", lambda v: v >= 0, ">= 0"),
+    ("trajectory.ramp_duration", lambda v: v >= 0, ">= 0"),
+    ("sim.dt", lambda v: 0 < v <= 0.01, "in (0, 0.01] s"),
+    ("sim.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
+    ("sim.mocap_dropout_prob", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("knode.queue_size", lambda v: 1 <= v <= 10, "in 1..10"),
+    ("knode.hidden", lambda v: len(v) >= 1 and all(0 < h <= 1024 for h in v), "a non-empty list of widths in 1..1024"),
+    ("training.epochs", lambda v: v >= 1, ">= 1"),
+    ("training.lr", lambda v: v > 0, "> 0"),
+    ("training.validation_fraction", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("online.t_col", lambda v: 0 < v <= 60, "in (0, 60] s"),
+    ("online.epochs", lambda v: v >= 1, ">= 1"),
+    ("online.lr", lambda v: v > 0, "> 0"),
+    ("online.weight_decay", lambda v: v >= 0, ">= 0"),
+    ("online.replay_windows", lambda v: 0 <= v <= 20, "in 0..20"),
+    ("online.gate_min_pairs", lambda v: v >= 2, ">= 2"),
+    ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
+    ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
+    ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
+    ("online.max_restarts", lambda v: v >= 0, ">= 0"),
+    ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),
+    ("online.rollback_fallbacks", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
+    ("online.monitor_every_ticks", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_margin", lambda v: v >= 1, ">= 1"),
+    ("online.monitor_floor", lambda v: v >= 0, ">= 0 m/s^2"),
+    ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
+    ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
+    ("safety.fence_margin", lambda v: v >= 0, ">= 0"),
+    ("safety.fence_stop_distance", lambda v: v > 0, "> 0"),
+    ("safety.mocap_hold_s", lambda v: v > 0, "> 0"),
+    ("safety.hold_thrust_factor", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("safety.link_silence_s", lambda v: v > 0, "> 0"),
+    ("safety.overrun_ticks", lambda v: v >= 1, ">= 1"),
+    ("safety.battery_filter_s", lambda v: v > 0, "> 0"),
+    ("safety.max_tilt_deg", lambda v: 0 < v < 180, "in (0, 180)"),
+    ("safety.max_tracking_error", lambda v: v > 0, "> 0"),
+    ("safety.max_fallback_s", lambda v: v > 0, "> 0"),
+    ("safety.land_speed", lambda v: v > 0, "> 0"),
+    ("safety.preflight_timeout_s", lambda v: v > 0, "> 0"),
+    ("faults.battery_drop_to", lambda v: v > 0, "> 0 V"),
+    ("hardware.mocap_connect_timeout", lambda v: v > 0, "> 0 s"),
+    ("hardware.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000] Hz"),
+    ("hardware.radio_connect_timeout", lambda v: v > 0, "> 0 s"),
+    ("hardware.preflight_settle", lambda v: 0.2 <= v <= 30, "in [0.2, 30] s"),
+    ("hardware.preflight_position_tolerance", lambda v: v > 0, "> 0 m"),
+    ("hardware.preflight_max_tilt_deg", lambda v: 0 < v < 90, "in (0, 90)"),
+    ("hardware.extpos_std", lambda v: v > 0, "> 0 m"),
+    ("hardware.extquat_std", lambda v: v > 0, "> 0"),
+    ("hardware.heartbeat_hz", lambda v: v == 0 or 2 <= v <= 50, "0 (off) or in [2, 50] Hz (the firmware allows 1 s)"),
+    ("hardware.telemetry_hz", lambda v: 0.4 <= v <= 100, "in [0.4, 100] Hz (log periods 10..2540 ms)"),
+)
+
+
+def default_dict() -> dict[str, Any]:
+    """The default configuration as a plain nested dict (from default.yaml)."""
+    text = resources.files("cfknode").joinpath("config/default.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Defaults, then the YAML file at ``path``, then dotted-key ``overrides``."""
+    data = default_dict()
+    if path is not None:
+        data = _merge(data, read_yaml_mapping(Path(path)), prefix="")
+    for key, value in (overrides or {}).items():
+        data = _merge(data, _nest(key, value), prefix="")
+    return build_config(data)
+
+
+def build_config(data: Mapping[str, Any]) -> Config:
+    cfg = _build(Config, data, "")
+    from cfknode.app.config_bounds import check_bounds  # imported here: it imports this module
+
+    check_bounds(cfg)
+    for key, ok, what in _RULES:
+        value = _get(cfg, key)
+        if not ok(value):
+            raise ConfigError(f"config key '{key}' must be {what}, got {value!r}")
+    return cfg
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """Parse ``key.path=value`` (value in YAML syntax) from ``--set``."""
+    if "=" not in text:
+        raise ConfigError(f"--set expects key=value, got {text!r}")
+    key, raw = text.split("=", 1)
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError:
+        raise ConfigError(f"--set {key}: cannot parse value {raw!r}") from None
+    return key.strip(), value
+
+
+def read_yaml_mapping(path: Path, what: str = "config file") -> dict[str, Any]:
+    """A YAML file holding a mapping; a missing file or bad YAML is a one-line ConfigError naming it."""
+    if not path.is_file():
+        raise ConfigError(f"{what} not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{what} {path}{where} is not valid YAML") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{what} {path} must hold a mapping at the top level")
+    return data
+
+
+def _nest(dotted: str, value: Any) -> dict[str, Any]:
+    out: Any = value
+    for part in reversed(dotted.split(".")):
+        out = {part: out}
+    return out
+
+
+def _merge(base: dict[str, Any], new: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in new.items():
+        dotted = f"{prefix}{key}"
+        if key not in base:
+            raise ConfigError(f"unknown config key '{dotted}'")
+        if isinstance(base[key], dict):
+            if not isinstance(value, dict):
+                raise ConfigError(f"config key '{dotted}' must be a mapping, got {type(value).__name__}")
+            out[key] = _merge(base[key], value, prefix=f"{dotted}.")
+        else:
+            out[key] = value
+    return out
+
+
+def _build(cls: type, data: Any, prefix: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"config key '{prefix.rstrip('.') or '<top>'}' must be a mapping")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"unknown config key '{prefix}{key}'")
+    kwargs = {}
+    for name in names:
+        dotted = f"{prefix}{name}"
+        if name not in data:
+            raise ConfigError(f"missing config key '{dotted}'")
+        kwargs[name] = _coerce(hints[name], data[name], dotted)
+    return cls(**kwargs)
+
+
+def _coerce(tp: Any, value: Any, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, f"{key}.")
+    if origin is Literal:
+        choices = typing.get_args(tp)
+        if value not in choices:
+            raise ConfigError(f"config key '{key}' must be one of {', '.join(map(str, choices))}; got {value!r}")
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key '{key}' must be a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"config key '{key}' must have {len(args)} elements, got {len(value)}")
+        return tuple(_coerce(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
+        return value
+    if tp in (int, float) and isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+        # YAML reads 1e-9 (an exponent without a decimal point) as a string.
+        number = float(value)
+        value = int(number) if tp is int and number.is_integer() else number
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config key '{key}' must be a number, got {value!r}")
+        value = float(value)
+        if value != value or value in (float("inf"), float("-inf")):
+            raise ConfigError(f"config key '{key}' must be finite, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"config key '{key}' must be a string, got {value!r}")
+        return value
+    if isinstance(tp, types.UnionType) or origin is typing.Union:
+        raise TypeError(f"unsupported union in schema at {key}")
+    raise TypeError(f"unsupported schema type {tp!r} at {key}")
+
+
+_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
+
+
+def _get(cfg: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    return obj

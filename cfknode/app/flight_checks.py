@@ -1,0 +1,56 @@
+"""Checks of a flight's configuration before anything is built or connected.
+
+``refuse_unflyable(cfg)`` raises a one-line ``ConfigError`` (exit status 2 at the CLI) when:
+
+- a hardware robot's values (mass, battery limits from the robots file) break the config bounds;
+- the trajectory leaves the geofence's soft box, or needs more tilt or thrust than the limits
+  allow (``cfknode/app/trajectory_fit.py``); with ``hardware.force`` it flies anyway, and the reason
+  is returned as a log event instead;
+- the log directory or the e-stop mailbox directory cannot be created or written.
+
+Cheap by design: it runs before the MPC is built and before any radio is opened.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from cfknode.app.config import Config, ConfigError
+from cfknode.app.config_bounds import check_bounds
+from cfknode.safety.operator import mailbox_dir
+from cfknode.app.trajectory_fit import trajectory_problem
+
+
+def writable_dir_problem(path: Path, key: str) -> str | None:
+    """Why the directory ``path`` (config key ``key``) cannot hold new files, or None; creates it."""
+    if path.exists() and not path.is_dir():
+        return f"{key} {path} is a file, not a directory"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"{key} {path}: cannot create the directory ({exc.strerror or exc})"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return f"{key} {path}: the directory is not writable"
+    return None
+
+
+def refuse_unflyable(cfg: Config, where: str = "") -> list[dict[str, Any]]:
+    """Raise ``ConfigError`` if ``cfg`` must not fly; return the log events of a forced take-off.
+
+    ``where`` names the source of values not from the config file (a robot from the robots file).
+    """
+    if where:
+        check_bounds(cfg, where=f"{where}: ")
+    for path, key in ((Path(cfg.log.dir).expanduser(), "log.dir"),
+                      (mailbox_dir(cfg.safety.estop_dir), "safety.estop_dir")):
+        problem = writable_dir_problem(path, key)
+        if problem is not None:
+            raise ConfigError(problem)
+    problem = trajectory_problem(cfg)
+    if problem is None:
+        return []
+    if not cfg.hardware.force:
+        raise ConfigError(f"refusing to take off: {problem} (hardware.force / --force flies it clamped)")
+    return [{"level": "warning", "text": f"take-off FORCED despite: {problem}", "source": "preflight"}]

@@ -1,0 +1,198 @@
+"""Wiring for online learning: config -> trainer process + ``OnlineLearner`` observer for one flight.
+
+Mission wiring (``run_flight``) uses it in three lines::
+
+    model = online_model_slot(cfg, build_model_slot(cfg))      # a slot even when starting nominal
+    with start_trainer(cfg) as trainer:                        # pre-flight, before the clock starts
+        ...                                                    # (backend, log, clock as today)
+        with online_session(cfg, model, log, clock, trainer) as online:
+            controller = Controller(cfg.controller, cfg.vehicle, model=model)
+            controller.observers.extend([online] if online else [])
+            parts = FlightParts(..., controller=controller)
+            record = asyncio.run(fly(parts))
+            extra.update(online.summary_fields() if online else {})
+
+``start_trainer`` exists because a wall clock starts running when the backend is built: a
+trainer still importing torch then would eat the take-off. In lockstep ``online_session``
+can start the trainer itself (the virtual clock waits).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import Any, Iterator
+
+from cfknode.app.config import Config, ConfigError
+from cfknode.flight.controller import Controller
+from cfknode.flight.model_monitor import MonitorSettings
+from cfknode.flight.model_slot import ModelSlot
+from cfknode.flight.online import LearnerSettings, OnlineLearner
+from cfknode.flight.online_gate import GateLimits, operating_envelope
+from cfknode.flight.trainer_client import TrainerClient
+from cfknode.models.trainer_process import TrainerSettings
+
+# Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
+READY_TIMEOUT_S = 120.0
+
+
+def check_online(cfg: Config) -> None:
+    """Refuse configurations online learning cannot fly (one-line ``ConfigError``)."""
+    if not cfg.online.enabled:
+        return
+    if cfg.controller.kind == "geometric":
+        raise ConfigError("online.enabled needs an MPC (controller.kind mpc or knode-mpc), not geometric")
+    if cfg.online.paper_lockstep and cfg.sim.realtime:
+        raise ConfigError("online.paper_lockstep stops the simulation for every model: it needs lockstep (not --realtime)")
+    if cfg.online.paper_lockstep and cfg.backend != "sim":
+        raise ConfigError("online.paper_lockstep is a simulation-only reproduction mode")
+
+
+def online_model_slot(cfg: Config, slot: ModelSlot | None) -> ModelSlot | None:
+    """The slot online learning swaps into: the given one, or an empty (nominal) one."""
+    if not cfg.online.enabled or slot is not None:
+        return slot
+    return ModelSlot(None, version=0)
+
+
+def trainer_settings(cfg: Config) -> TrainerSettings:
+    """Each round: the ``training`` section with the online epochs, learning rate, weight decay and method."""
+    o = cfg.online
+    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay,
+                                   method=o.method)
+    return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
+
+
+def learner_settings(
+    cfg: Config, lockstep: bool, ground_z: float | None = None, speed: float | None = None
+) -> LearnerSettings:
+    """``speed``: the gate's envelope speed (m/s); None takes it from the data."""
+    o = cfg.online
+    return LearnerSettings(
+        t_col=o.t_col,
+        period=1.0 / cfg.controller.rate_hz,
+        lockstep=lockstep,
+        paper_lockstep=o.paper_lockstep,
+        gate=o.gate,
+        gate_min_pairs=o.gate_min_pairs,
+        replay_windows=o.replay_windows,
+        start_time=o.start_time,
+        rollback_ticks=o.rollback_ticks,
+        rollback_fallbacks=o.rollback_fallbacks,
+        max_restarts=o.max_restarts,
+        limits=gate_limits(cfg, speed),
+        filter_hz=cfg.training.velocity_filter_hz,
+        holdout_fraction=cfg.training.validation_fraction,
+        queue_size=cfg.knode.queue_size,
+        monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
+        if o.monitor else None,
+        ground_z=ground_z,
+    )
+
+
+def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
+    """The gate's plausibility limits on the MPC's operating envelope: its input box, and velocities up to
+    ``speed`` (m/s; None: twice the fastest axis of the data it judges, plus 0.5 m/s)."""
+    from cfknode.flight.mpc import acceleration_bounds
+
+    bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
+    x, u = operating_envelope(1.0 if speed is None else speed, bounds.lower, bounds.upper)
+    o = cfg.online
+    return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
+                      envelope_from_data=speed is None)
+
+
+@contextlib.contextmanager
+def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | None]:
+    """The trainer process for one flight (None when online learning is off); stopped on exit."""
+    check_online(cfg)
+    if not cfg.online.enabled:
+        yield None
+        return
+    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout)
+    client.start()
+    try:
+        if wait and not client.wait_ready(READY_TIMEOUT_S):
+            raise ConfigError(client.start_problem)
+        yield client
+    finally:
+        client.close()
+
+
+@contextlib.contextmanager
+def online_session(
+    cfg: Config, slot: ModelSlot | None, log: Any, clock: Any, trainer: TrainerClient | None = None,
+    ground_z: float | None = None,
+) -> Iterator[OnlineLearner | None]:
+    """The loop observer that learns in flight (None when online learning is off).
+
+    ``trainer``: one from ``start_trainer`` (pre-flight). Without it one is started here; in
+    lockstep this waits until it is up (the virtual clock does not run meanwhile), on a wall
+    clock it does not wait and the first windows queue until the trainer reports ready.
+    """
+    check_online(cfg)
+    if not cfg.online.enabled:
+        yield None
+        return
+    if slot is None:
+        raise ConfigError("online learning needs a model slot: use online_model_slot(cfg, slot)")
+    base = None
+    if cfg.controller.model:
+        from cfknode.models.modelfile import ModelFileError, load_model
+
+        try:
+            base = load_model(cfg.controller.model)  # the queue the flight starts with, as the trainer's base
+        except ModelFileError as exc:
+            raise ConfigError(f"refusing to fly: {exc}") from None
+    with contextlib.ExitStack() as stack:
+        if trainer is None:
+            trainer = stack.enter_context(start_trainer(cfg, wait=bool(clock.lockstep)))
+        # A mission knows its pattern: the envelope spans twice its speed.
+        speed = 2.0 * cfg.trajectory.speed + 0.5
+        learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep), ground_z, speed), slot, trainer, log, base)
+        yield learner
+
+
+class _NoLog:
+    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def online_learning(
+    controller: Controller, cfg: Config, *, lockstep: bool = True, log: Any = None, ground_z: float | None = None,
+    speed: float | None = None,
+) -> Iterator[OnlineLearner]:
+    """Online learning for a ``Controller`` flown by any loop (another simulator, a ROS 2 node).
+
+    Starts the trainer (the calling script needs an ``if __name__ == "__main__":`` guard), gives
+    the controller an empty model slot if it has none, and watches its ticks: call
+    ``controller.publish()`` once each command is sent (or let the next ``step`` do it).
+    ``lockstep``: the caller's time is simulated (models apply no earlier than their honest
+    training delay); False on a wall clock. ``ground_z``: the floor's height (None: no floor,
+    e.g. a flight that starts in the air). ``speed``: the gate's envelope speed (None: from the data).
+    """
+    cfg = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, enabled=True))
+    if controller.model is None:
+        controller.model = ModelSlot(None, version=0)
+    with start_trainer(cfg) as trainer:
+        learner = OnlineLearner(learner_settings(cfg, lockstep, ground_z, speed), controller.model, trainer,
+                                log if log is not None else _NoLog())
+        controller.observers.append(learner)
+        try:
+            yield learner
+        finally:
+            controller.publish()
+            controller.observers.remove(learner)
+
+
+__all__ = [
+    "check_online",
+    "online_learning",
+    "gate_limits",
+    "learner_settings",
+    "online_model_slot",
+    "online_session",
+    "start_trainer",
+    "trainer_settings",
+]

@@ -1,0 +1,1 @@
+"""Flight logs: MCAP with JSON messages; the writer, the format, the streaming reader."""

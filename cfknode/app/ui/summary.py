@@ -1,0 +1,313 @@
+"""The flight summary: tracking error on the pattern window, tick timing, run speed.
+
+The tracking metric is the paper's: the mean over time of the squared position error, per
+axis, and averaged over the three axes ("MSE"). It is computed on the pattern window (the
+circle, figure-8 or hover, without take-off and landing) and over the whole flight.
+Percentiles use numpy's default (linear interpolation between order statistics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from cfknode.app.logs.reader import LogData
+
+__all__ = [
+    "FlightSummary",
+    "TrackingError",
+    "compute_summary",
+    "render_summary",
+    "summary_from_dict",
+    "summary_from_log",
+    "summary_to_json",
+    "tracking_error",
+]
+
+
+@dataclass(frozen=True)
+class TrackingError:
+    """Position error statistics over a set of samples (NaN when there are none)."""
+
+    samples: int
+    mse_xyz: tuple[float, float, float]  # m^2, mean over time of the squared error per axis
+    mse: float  # m^2, mean of mse_xyz (the paper's metric)
+    rms: float  # m, sqrt of the mean squared error norm
+    max: float  # m, largest error norm
+
+
+@dataclass(frozen=True)
+class FlightSummary:
+    """Everything `cfknode fly` reports about one flight. All times in the units named."""
+
+    window: tuple[float, float]  # pattern window [t0, t1], flight time s
+    window_samples: int
+    mse_x: float  # m^2, on the pattern window
+    mse_y: float
+    mse_z: float
+    mse: float  # m^2, mean over the axes (the paper's metric), on the pattern window
+    rms_error: float  # m, on the pattern window
+    max_error: float  # m, on the pattern window
+    flight_mse_x: float  # m^2, over the whole flight
+    flight_mse_y: float
+    flight_mse_z: float
+    flight_mse: float
+    flight_rms_error: float
+    flight_max_error: float
+    ticks: int
+    missed_deadlines: int
+    compute_median_ms: float
+    compute_p99_ms: float
+    compute_max_ms: float
+    solve_median_ms: float  # over ticks that ran a solve (finite, > 0 solve time)
+    solve_p99_ms: float
+    duration_s: float  # simulated (flight clock) time covered
+    wall_time_s: float
+    speed_factor: float  # simulated seconds per wall second
+    log_path: str | None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-safe dict: lists for tuples, None for non-finite numbers."""
+        return _json_safe(dataclasses.asdict(self))
+
+
+def tracking_error(p: np.ndarray, p_ref: np.ndarray) -> TrackingError:
+    """Error statistics of positions ``p`` against ``p_ref`` (both (n, 3)); rows with NaN are skipped."""
+    p = np.asarray(p, dtype=float).reshape(-1, 3)
+    p_ref = np.asarray(p_ref, dtype=float).reshape(-1, 3)
+    if p.shape != p_ref.shape:
+        raise ValueError(f"p {p.shape} and p_ref {p_ref.shape} differ in shape")
+    err = p - p_ref
+    err = err[np.isfinite(err).all(axis=1)]
+    if len(err) == 0:
+        nan = math.nan
+        return TrackingError(0, (nan, nan, nan), nan, nan, nan)
+    sq = err * err
+    mse_xyz = sq.mean(axis=0)
+    norm_sq = sq.sum(axis=1)
+    return TrackingError(
+        samples=len(err),
+        mse_xyz=(float(mse_xyz[0]), float(mse_xyz[1]), float(mse_xyz[2])),
+        mse=float(mse_xyz.mean()),
+        rms=float(math.sqrt(norm_sq.mean())),
+        max=float(math.sqrt(norm_sq.max())),
+    )
+
+
+def compute_summary(
+    t: np.ndarray,
+    p: np.ndarray,
+    p_ref: np.ndarray,
+    compute_s: np.ndarray,
+    solve_s: np.ndarray,
+    missed: np.ndarray,
+    window: tuple[float, float],
+    wall_time: float,
+    log_path: str | None = None,
+    *,
+    duration: float | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> FlightSummary:
+    """Summarise a flight from per-tick arrays (pure).
+
+    ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
+    ``compute_s``, ``solve_s`` and ``missed`` are per tick (any common length; a NaN or zero
+    solve time means no solve ran that tick). ``window`` selects t0 <= t <= t1 for the
+    pattern metrics. ``duration`` defaults to the span of ``t``.
+    """
+    t = np.asarray(t, dtype=float).reshape(-1)
+    p = np.asarray(p, dtype=float).reshape(-1, 3)
+    p_ref = np.asarray(p_ref, dtype=float).reshape(-1, 3)
+    if not len(t) == len(p) == len(p_ref):
+        raise ValueError(f"t, p and p_ref must have the same length, got {len(t)}, {len(p)}, {len(p_ref)}")
+    compute_s = np.asarray(compute_s, dtype=float).reshape(-1)
+    solve_s = np.asarray(solve_s, dtype=float).reshape(-1)
+    missed = np.asarray(missed, dtype=bool).reshape(-1)
+    if len(missed) != len(compute_s):
+        raise ValueError(f"missed ({len(missed)}) and compute_s ({len(compute_s)}) must have the same length")
+    t0, t1 = float(window[0]), float(window[1])
+    if t1 < t0:
+        raise ValueError(f"window end {t1} is before its start {t0}")
+
+    in_window = (t >= t0) & (t <= t1)
+    pattern = tracking_error(p[in_window], p_ref[in_window])
+    whole = tracking_error(p, p_ref)
+    compute_ms = _finite(compute_s) * 1e3
+    solve_ms = _finite(solve_s)
+    solve_ms = solve_ms[solve_ms > 0] * 1e3
+    if duration is None:
+        duration = float(t[-1] - t[0]) if len(t) else 0.0
+    return FlightSummary(
+        window=(t0, t1),
+        window_samples=pattern.samples,
+        mse_x=pattern.mse_xyz[0],
+        mse_y=pattern.mse_xyz[1],
+        mse_z=pattern.mse_xyz[2],
+        mse=pattern.mse,
+        rms_error=pattern.rms,
+        max_error=pattern.max,
+        flight_mse_x=whole.mse_xyz[0],
+        flight_mse_y=whole.mse_xyz[1],
+        flight_mse_z=whole.mse_xyz[2],
+        flight_mse=whole.mse,
+        flight_rms_error=whole.rms,
+        flight_max_error=whole.max,
+        ticks=len(compute_s),
+        missed_deadlines=int(missed.sum()),
+        compute_median_ms=_percentile(compute_ms, 50),
+        compute_p99_ms=_percentile(compute_ms, 99),
+        compute_max_ms=float(compute_ms.max()) if len(compute_ms) else math.nan,
+        solve_median_ms=_percentile(solve_ms, 50),
+        solve_p99_ms=_percentile(solve_ms, 99),
+        duration_s=float(duration),
+        wall_time_s=float(wall_time),
+        speed_factor=float(duration) / wall_time if wall_time > 0 else math.nan,
+        log_path=log_path,
+        extra=dict(extra or {}),
+    )
+
+
+def summary_from_log(
+    log: LogData,
+    window: tuple[float, float] | None = None,
+    wall_time: float | None = None,
+    use_true: bool = True,
+) -> FlightSummary:
+    """Recompute a summary from a flight log (for replay and plots; works on truncated logs).
+
+    Positions are the simulator's true ones when logged and ``use_true``, else the estimate,
+    matched to ``/reference`` by tick time. ``window`` and ``wall_time`` default to the values
+    in the log's ``/summary`` message, else the whole flight and NaN.
+    """
+    logged = log.topic("/summary")
+    previous = logged[-1] if logged else {}
+    states, refs, ticks = log.topic("/state"), log.topic("/reference"), log.topic("/tick")
+    t_state = log.times("/state")
+    field_name = "p_true" if use_true and states and all("p_true" in m for m in states) else "p"
+    p = log.array("/state", field_name) if states else np.zeros((0, 3))
+    p_ref = log.array("/reference", "p") if refs else np.zeros((0, 3))
+    t, i_state, i_ref = np.intersect1d(t_state, log.times("/reference"), return_indices=True)
+    if window is None:
+        window = tuple(previous["window"]) if "window" in previous else (
+            (float(t[0]), float(t[-1])) if len(t) else (0.0, 0.0))
+    if wall_time is None:
+        wall_time = previous.get("wall_time_s") or math.nan
+    extra = {"recomputed_from": str(log.path), "positions": field_name}
+    if log.truncated:
+        extra["truncated"] = True
+    t_ticks = log.times("/tick")
+    return compute_summary(
+        t=t,
+        p=p[i_state],
+        p_ref=p_ref[i_ref],
+        compute_s=log.array("/tick", "compute_s") if ticks else np.zeros(0),
+        solve_s=log.array("/tick", "solve_s") if ticks else np.zeros(0),
+        missed=log.array("/tick", "missed") if ticks else np.zeros(0, dtype=bool),
+        window=window,
+        wall_time=wall_time,
+        log_path=str(log.path),
+        duration=float(t_ticks[-1] - t_ticks[0]) if len(t_ticks) else None,
+        extra=extra,
+    )
+
+
+def summary_to_json(summary: FlightSummary) -> str:
+    """One-line JSON object (non-finite numbers as null), for `cfknode fly --json`."""
+    return json.dumps(summary.to_dict(), allow_nan=False)
+
+
+def summary_from_dict(data: Mapping[str, Any]) -> FlightSummary:
+    """Inverse of ``FlightSummary.to_dict`` (null numbers come back as NaN)."""
+    names = {f.name for f in dataclasses.fields(FlightSummary)}
+    unknown = set(data) - names - {"t"}
+    if unknown:
+        raise ValueError(f"unknown flight-summary fields: {sorted(unknown)}")
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(FlightSummary):
+        if f.name not in data:
+            if f.name == "extra":
+                continue
+            raise ValueError(f"flight summary lacks field {f.name!r}")
+        value = data[f.name]
+        if f.name == "window":
+            value = tuple(math.nan if v is None else float(v) for v in value)
+        elif value is None and f.name not in ("log_path",):
+            value = math.nan
+        values[f.name] = value
+    return FlightSummary(**values)
+
+
+def render_summary(summary: FlightSummary, console: Console) -> None:
+    """Print the summary as a rich table."""
+    s = summary
+    table = Table(title="Flight summary", show_header=True, header_style="bold")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_column("unit")
+
+    t0, t1 = s.window
+    table.add_row(f"[bold]pattern window[/] {t0:.2f}-{t1:.2f} s", f"{s.window_samples}", "samples")
+    table.add_row("MSE x / y / z", " / ".join(_g(v) for v in (s.mse_x, s.mse_y, s.mse_z)), "m^2")
+    table.add_row("[bold]MSE[/] (mean over axes)", f"[bold]{_g(s.mse)}[/]", "m^2")
+    table.add_row("RMS / max error", f"{_g(s.rms_error)} / {_g(s.max_error)}", "m")
+    table.add_section()
+    table.add_row("[bold]whole flight[/]", "", "")
+    table.add_row("MSE x / y / z", " / ".join(_g(v) for v in (s.flight_mse_x, s.flight_mse_y, s.flight_mse_z)), "m^2")
+    table.add_row("MSE (mean over axes)", _g(s.flight_mse), "m^2")
+    table.add_row("RMS / max error", f"{_g(s.flight_rms_error)} / {_g(s.flight_max_error)}", "m")
+    table.add_section()
+    missed = f"{s.missed_deadlines} / {s.ticks}"
+    table.add_row("missed deadlines / ticks", f"[red]{missed}[/]" if s.missed_deadlines else missed, "")
+    table.add_row("tick compute median / p99 / max",
+                  " / ".join(_ms(v) for v in (s.compute_median_ms, s.compute_p99_ms, s.compute_max_ms)), "ms")
+    table.add_row("MPC solve median / p99", f"{_ms(s.solve_median_ms)} / {_ms(s.solve_p99_ms)}", "ms")
+    table.add_section()
+    table.add_row("simulated duration", f"{s.duration_s:.2f}", "s")
+    table.add_row("wall time", f"{s.wall_time_s:.2f}", "s")
+    table.add_row("speed", _g(s.speed_factor, 3), "x real time")
+    for key, value in s.extra.items():
+        table.add_row(str(key), _g(value) if isinstance(value, float) else str(value), "")
+    if s.log_path:
+        table.add_row("log", s.log_path, "")
+    console.print(table)
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    return x[np.isfinite(x)]
+
+
+def _percentile(x: np.ndarray, q: float) -> float:
+    return float(np.percentile(x, q)) if len(x) else math.nan
+
+
+def _g(x: float, digits: int = 4) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _ms(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else f"{x:.3f}"
+
+
+def _json_safe(obj: Any) -> Any:
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, Mapping):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj

@@ -1,1 +1,0 @@
-"""One module per ``cfknode`` subcommand (see ``cfknode.cli``)."""
