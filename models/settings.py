@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from cfknode.kernel.vehicle import Vec3
 
 
 @dataclass(frozen=True)

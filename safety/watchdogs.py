@@ -7,10 +7,9 @@ They run every tick (or every few), so they are plain Python on floats: no numpy
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
-from cfknode.kernel.link import LINK_OK, LinkSource, LinkStatus
+from cfknode.kernel.link import LinkSource, LinkStatus
 
 
 

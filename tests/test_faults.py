@@ -320,7 +320,7 @@ def test_the_dashboards_e_stop_key_lands_through_the_supervisor_hook(tmp_path):
     cfg = _cfg(tmp_path, scenario_path("mocap_dropout_50ms"), **{"faults.mocap_outages": []})
     res = run_flight(cfg, observers=[KeyAt()], on_supervisor=supervisors.append)
     assert res.outcome.state.value == "LANDED" and res.outcome.cause == "operator_land"
-    assert re.fullmatch(rf"landed: operator e-stop key at 2\.50 s", res.outcome.message)
+    assert re.fullmatch(r"landed: operator e-stop key at 2\.50 s", res.outcome.message)
 
 
 # --- the injectors on their own (no flight) ---------------------------------------------------

@@ -28,7 +28,7 @@ from cfknode.app.mission import build_controller, build_supervisor
 from cfknode.mocap.motioncapture_source import MocapError
 from cfknode.app.backends.robots import example_robots_path, load_robot
 from cfknode.safety.preflight import PreflightError
-from cfknode.safety.supervisor import State, Supervisor, SupervisorInputs
+from cfknode.safety.supervisor import State, SupervisorInputs
 from cfknode.safety.watchdogs import radio_link_status
 
 _uris = itertools.count(9500)

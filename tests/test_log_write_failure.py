@@ -10,7 +10,7 @@ from typing import Any, BinaryIO
 import pytest
 
 from cfknode.app.cli import main
-from cfknode.flight import flightlog
+from cfknode.app.logs import writer as flightlog
 from cfknode.app.logs.reader import read_log
 
 SHORT = [

@@ -20,7 +20,7 @@ from cfknode.app.config import load_config
 from cfknode.app.logs.format import CHANNELS, MCAP_MAGIC
 from cfknode.app.logs.reader import LogData, read_log, replay_mocap
 from cfknode.app.mission import run_flight
-from cfknode.mocap.replay import ReplayError, ReplayMocap
+from cfknode.mocap.replay import ReplayError
 
 SHORT = {
     "trajectory.duration": 1.5,

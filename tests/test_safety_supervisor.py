@@ -16,7 +16,7 @@ from cfknode.flight.trajectory import make_trajectory
 from cfknode.mocap.source import Pose
 from cfknode.models.quadrotor import euler_zyx_to_quat
 from cfknode.safety.supervisor import (
-    BLIND, CUTOFF_HOLD_S, FLY, OFF, STOP_HOLD_S, State, Supervisor, SupervisorInputs,
+    BLIND, CUTOFF_HOLD_S, FLY, OFF, STOP_HOLD_S, State, SupervisorInputs,
 )
 from cfknode.safety.watchdogs import LinkStatus
 from cfknode.app.mission import build_supervisor

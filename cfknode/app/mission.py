@@ -11,30 +11,27 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
-import numpy as np
 
 from cfknode import __version__
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.flight_checks import refuse_unflyable
-from cfknode.kernel.clock import SimClock, WallClock
 from cfknode.flight.controller import Controller
 from cfknode.flight.trainer_client import refuse_in_spawned_import
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.app.logs.writer import FlightLog
-from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.flight.loop import FlightParts, FlightRecord, TickObserver, fly
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
-from cfknode.app.backends.radio import CflibRadio
+from cfknode.app.backends.base import Backend
+from cfknode.app.backends.sim import SimulatorBackend
 from cfknode.app.ui.summary import FlightSummary, compute_summary
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.app.ui.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
-from cfknode.safety.watchdogs import radio_link_status, worst_link
 
 
 class MissionError(RuntimeError):
@@ -87,24 +84,6 @@ def build_model_slot(cfg: Config) -> ModelSlot | None:
     return ModelSlot(queue, version=1)
 
 
-@dataclass
-class Session:
-    """What a backend hands the flight: the same shape for the simulator and for hardware."""
-
-    config: Config  # the flight's config (on hardware: with the robot's mass and limits)
-    clock: Any
-    mocap: Any
-    radio: Any
-    start_position: np.ndarray
-    truth: Callable[[], np.ndarray] | None
-    battery_voltage: Callable[[], float | None]
-    link_status: Callable[[float], Any]
-    wrap_controller: Callable[[Any], Any] = lambda mpc: mpc
-    fault_observers: Callable[[ModelSlot | None], list[TickObserver]] = lambda model: []
-    events: tuple[dict[str, Any], ...] = ()  # logged before take-off (pre-flight checks)
-    after_handback: Callable[[], dict[str, Any]] = dict  # summary extras once the drone is handed back
-
-
 def run_flight(
     cfg: Config,
     name_hint: str = "flight",
@@ -126,7 +105,7 @@ def run_flight(
         from cfknode.sim_backend.faults import check_faults
 
         check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
-        flight_cfg, session = cfg, _sim_session(cfg)
+        flight_cfg, session = cfg, SimulatorBackend.open(cfg)
     else:
         from cfknode.app.backends.crazyflie import HARDWARE_ERRORS, flight_config, robot_for
 
@@ -134,7 +113,7 @@ def run_flight(
             flight_cfg = flight_config(cfg, robot_for(cfg))  # the robot's mass and limits
         except HARDWARE_ERRORS as exc:
             raise MissionError(str(exc)) from exc
-        session = _cf_session(cfg, dashboard)
+        session = _crazyflie(cfg, dashboard)
     # Before anything is built or connected: an unflyable config is refused in one line.
     forced = refuse_unflyable(flight_cfg, where="" if flight_cfg is cfg else f"robot {cfg.hardware.robot}")
     from cfknode.app.learning import online_model_slot, start_trainer
@@ -148,9 +127,8 @@ def run_flight(
     # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
     # The e-stop mailbox first: a second flight of a flying robot is refused before anything connects.
     with estop_mailbox(cfg, flight_cfg) as estop, start_trainer(flight_cfg) as trainer, session as sess:
-        sess = replace(sess, events=(*forced, *sess.events))
         return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
-                            estop)
+                            estop, (*forced, *sess.events))
 
 
 def estop_name(cfg: Config) -> str:
@@ -182,7 +160,7 @@ def estop_mailbox(cfg: Config, flight_cfg: Config) -> Iterator[EstopMailbox]:
 
 
 def _fly_session(
-    sess: Session,
+    sess: Backend,
     name_hint: str,
     model: ModelSlot | None,
     loaded_model: bool,
@@ -192,6 +170,7 @@ def _fly_session(
     dashboard: Any,
     trainer: Any,
     estop: EstopMailbox | None = None,
+    events: Sequence[dict[str, Any]] = (),
 ) -> FlightResult:
     from cfknode.app.learning import online_session
 
@@ -200,7 +179,7 @@ def _fly_session(
     status = _dashboard_status(cfg) if dashboard is not None else None
     with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
         log: Any = flight_log if status is None else StatusTap(flight_log, status)
-        for event in sess.events:
+        for event in events:
             log.write("/events", 0.0, event)
         supervisor = build_supervisor(
             cfg,
@@ -214,7 +193,7 @@ def _fly_session(
         with online_session(cfg, model, log, sess.clock, trainer, ground_z=ground_z) as online:
             # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
             deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
-            controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_controller(mpc),
+            controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_solver(mpc),
                                     deadline_s=deadline, ground_z=ground_z)
             if online is not None:
                 controller.observers.append(online)
@@ -292,7 +271,7 @@ def _dashboard_status(cfg: Config) -> Any:
     return FlightStatus(c.rate_hz, title=f"{t.kind} r={t.radius} m - {c.kind} ({c.solver})")
 
 
-def _with_dashboard(flight: Any, status: Any, console: Any, sess: Session, supervisor: Supervisor, cfg: Config) -> Any:
+def _with_dashboard(flight: Any, status: Any, console: Any, sess: Backend, supervisor: Supervisor, cfg: Config) -> Any:
     """Wrap the flight coroutine so the dashboard draws beside it; space and q land the drone."""
     from cfknode.app.ui.dashboard import with_dashboard
     from cfknode.app.ui.status import battery_poller, mocap_poller, radio_poller
@@ -308,113 +287,13 @@ def _with_dashboard(flight: Any, status: Any, console: Any, sess: Session, super
     return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz)
 
 
-def _vehicle_after(sim: Any) -> dict[str, Any]:
-    """Where the simulated drone ended and whether its motors run (after the hand-back)."""
-    return {
-        "position": [round(float(v), 4) for v in sim.state[:3]],
-        "motors": [int(m) for m in sim.firmware.motor_commands],
-        "on_ground": bool(sim.vehicle.on_ground),
-    }
-
-
-def _firmware_after_handback(sim, clock) -> str:
-    """The simulated firmware's state once the handback has settled (lockstep only).
-
-    The firmware's 2 s landed hysteresis decides between Landed and Locked after the
-    radio stops streaming, so a lockstep flight runs the simulator on to show which.
-    """
-    if clock.lockstep:
-        sim.step_to(sim.t + 2.5)
-    return sim.firmware.supervisor_state
-
-
 @contextlib.contextmanager
-def _sim_session(cfg: Config) -> Iterator[Session]:
-    """The simulated Crazyflie behind the real cflib path: sim:// driver, simulated mocap, a clock,
-    and the configured faults installed around them."""
-    from cfknode.mocap.simulated import SimulatedMocap
-    from cfknode.sim_backend.crazyflie import SimCrazyflie
-    from cfknode.sim_backend.faults import install_faults
-    from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
-    from cfknode.sim_backend.realtime import RealtimeStepper
-
-    sim = SimCrazyflie(cfg.vehicle, cfg.sim)
-    faults = install_faults(sim, cfg.faults)
-    mocap = SimulatedMocap.from_config(sim, cfg.sim, outages=faults.mocap_outages)
-    register_simulator(cfg.radio.uri, sim)
-    clock: WallClock | SimClock = WallClock() if cfg.sim.realtime else SimClock(sim)
-    radio = CflibRadio(
-        cfg.radio.uri,
-        tx_rate_hz=cfg.radio.tx_rate_hz,
-        lockstep=clock.lockstep,
-        clock=clock.now,
-        # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.
-        advance=sim.step_to if clock.lockstep else None,
-        rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
-    )
-    link = radio_link_status(radio)
-    if faults.link_status is not None:
-        link = worst_link(link, faults.link_status)
-    stepper = None
-    try:
-        radio.connect()
-        if cfg.sim.realtime:
-            stepper = RealtimeStepper(sim, clock.now).start()
-        yield Session(
-            config=cfg,
-            clock=clock,
-            mocap=mocap,
-            radio=radio,
-            start_position=np.asarray(cfg.sim.initial_position, dtype=float),
-            truth=lambda: sim.state,
-            battery_voltage=lambda: sim.battery_voltage,
-            link_status=link,
-            wrap_controller=lambda mpc: faults.controller(mpc, clock.now),
-            fault_observers=faults.observers,
-            after_handback=lambda: {
-                "firmware_after_shutdown": _firmware_after_handback(sim, clock),
-                "vehicle_after_shutdown": _vehicle_after(sim),
-            },
-        )
-    finally:
-        radio.shutdown()
-        if stepper is not None:
-            stepper.stop()
-        mocap.close()
-        unregister_simulator(cfg.radio.uri)
-
-
-@contextlib.contextmanager
-def _cf_session(cfg: Config, console: Any) -> Iterator[Session]:
-    """A Crazyflie over cflib with mocap over ``motioncapture`` (or the simulator behind sim://)."""
-    from rich.console import Console
-
-    from cfknode.app.backends.crazyflie import HARDWARE_ERRORS, cf_session
+def _crazyflie(cfg: Config, console: Any) -> Iterator[Backend]:
+    """The Crazyflie backend, its hardware errors as one-line ``MissionError``s."""
+    from cfknode.app.backends.crazyflie import HARDWARE_ERRORS, CrazyflieBackend
 
     try:
-        with cf_session(cfg, console=console or Console(stderr=True)) as hw:
-
-            def battery() -> float | None:
-                telemetry = hw.radio.telemetry()
-                return telemetry.vbat if telemetry is not None else None
-
-            def after() -> dict[str, Any]:
-                extra: dict[str, Any] = {"preflight": hw.preflight.to_dict(), "handback": hw.radio.handback_note}
-                if hw.sim is not None:
-                    extra["firmware_after_shutdown"] = hw.sim.firmware.supervisor_state
-                return extra
-
-            yield Session(
-                config=hw.config,
-                clock=hw.clock,
-                mocap=hw.mocap,
-                radio=hw.radio,
-                start_position=hw.start_position,
-                truth=hw.truth,
-                battery_voltage=battery,
-                link_status=radio_link_status(hw.radio),
-                events=tuple(hw.preflight.events()),
-                after_handback=after,
-            )
+        with CrazyflieBackend.open(cfg, console) as backend:
+            yield backend
     except HARDWARE_ERRORS as exc:
         raise MissionError(str(exc)) from exc

@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
@@ -28,7 +26,10 @@ import numpy as np
 
 from cfknode.app.config import Config, ConfigError
 from cfknode.kernel.clock import WallClock
+from cfknode.kernel.link import LinkStatus
+from cfknode.safety.watchdogs import radio_link_status
 from cfknode.app.backends.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
+from cfknode.mocap.simulated import SimulatedMocap
 from cfknode.mocap.motioncapture_source import (
     Connector,
     MocapError,
@@ -193,10 +194,9 @@ def _snapshot(cfg: Config, robot: Robot, radio: HardwareRadio, mocap: Motioncapt
 
 
 class SimulatedMotionCapture:
-    """The ``motioncapture`` object API (``waitForNextFrame``, ``rigidBodies``) served by a
-    simulator stepping in another thread: a frame every ``1 / rate_hz`` of sim time, sampled
-    from the true state with noise, delivered ``latency`` later; a dropped frame arrives
-    without the body, as an occluded Vicon subject does."""
+    """The ``motioncapture`` object API (``waitForNextFrame``, ``rigidBodies``) over the simulator's
+    mocap (``SimulatedMocap``: frame rate, noise, latency, dropouts), for a simulator stepping in
+    another thread. A dropped frame arrives without the body, as an occluded Vicon subject does."""
 
     def __init__(
         self, sim: Any, body_name: str, *, rate_hz: float, position_noise: float = 0.0,
@@ -204,42 +204,33 @@ class SimulatedMotionCapture:
     ) -> None:
         self._sim = sim
         self._name = body_name
-        self._period = 1.0 / rate_hz
-        self._next_t = (math.floor(sim.t / self._period + 1e-9) + 1) * self._period
-        self._pos_noise = position_noise
-        self._att_noise = attitude_noise
-        self._latency = latency
-        self._dropout = dropout_prob
-        self._rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x6863,)))
-        self._pending: deque[tuple[float, dict[str, SdkRigidBody]]] = deque()
+        self._source = SimulatedMocap(sim, rate_hz, position_noise, attitude_noise, latency, dropout_prob, seed)
         self._cond = threading.Condition()
         self._seq = 0
         self._consumed = 0
+        self._last_pose: Any = None  # the newest pose delivered
+        self._last_dropouts = 0
         self._ready: dict[str, SdkRigidBody] = {}
         self._bodies: dict[str, SdkRigidBody] = {}
         self._closed = False
-        sim.add_step_observer(self._on_step)
+        sim.add_step_observer(self._on_step)  # after the source's own observer: it sees this step's frame
 
     def _on_step(self, t: float, state: np.ndarray) -> None:
         if self._closed:
             return
-        if t >= self._next_t - 1e-9:
-            self._next_t = (math.floor(t / self._period + 1e-9) + 1) * self._period
-            self._pending.append((t + self._latency, self._sample(state)))
-        if self._pending and self._pending[0][0] <= t + 1e-9:
-            with self._cond:
-                while self._pending and self._pending[0][0] <= t + 1e-9:
-                    self._ready = self._pending.popleft()[1]
-                    self._seq += 1
-                self._cond.notify_all()
-
-    def _sample(self, state: np.ndarray) -> dict[str, SdkRigidBody]:
-        rng = self._rng
-        if self._dropout > 0.0 and rng.random() < self._dropout:
-            return {}
-        position = state[0:3] + self._pos_noise * rng.standard_normal(3)
-        w, x, y, z = _rotate(state[6:10], self._att_noise * rng.standard_normal(3))
-        return {self._name: SdkRigidBody(self._name, position.astype(np.float32), SdkQuaternion(w, x, y, z))}
+        pose, dropouts = self._source.latest(t), self._source.stats().dropouts
+        new_pose = pose is not None and pose is not self._last_pose
+        if not new_pose and dropouts == self._last_dropouts:
+            return
+        frame: dict[str, SdkRigidBody] = {}
+        if new_pose:
+            w, x, y, z = (float(c) for c in pose.quaternion)
+            frame = {self._name: SdkRigidBody(self._name, pose.position.astype(np.float32), SdkQuaternion(w, x, y, z))}
+        self._last_pose, self._last_dropouts = pose, dropouts
+        with self._cond:
+            self._ready = frame
+            self._seq += 1
+            self._cond.notify_all()
 
     def waitForNextFrame(self) -> None:  # noqa: N802 (the SDK's name)
         with self._cond:
@@ -257,21 +248,10 @@ class SimulatedMotionCapture:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+        self._source.close()
         remove = getattr(self._sim, "remove_step_observer", None)
         if remove is not None:
             remove(self._on_step)
-
-
-def _rotate(q: np.ndarray, rotvec: np.ndarray) -> tuple[float, float, float, float]:
-    """q (x) exp(rotvec), scalar first: a small body-frame rotation error."""
-    angle = float(np.linalg.norm(rotvec))
-    w, x, y, z = (float(v) for v in q)
-    if angle < 1e-12:
-        return w, x, y, z
-    s = math.sin(0.5 * angle) / angle
-    dw, dx, dy, dz = math.cos(0.5 * angle), s * rotvec[0], s * rotvec[1], s * rotvec[2]
-    return (w * dw - x * dx - y * dy - z * dz, w * dx + x * dw + y * dz - z * dy,
-            w * dy - x * dz + y * dw + z * dx, w * dz + x * dy - y * dx + z * dw)
 
 
 @dataclass(frozen=True)
@@ -339,6 +319,50 @@ def cf_session(cfg: Config, *, console: Any = None) -> Iterator[HardwareBackend]
                                       truth=lambda: simhw.sim.state, sim=simhw.sim)
 
 
+class CrazyflieBackend:
+    """``Backend`` for ``--backend cf``: a connected, checked robot (``HardwareBackend``) as the flight sees it.
+
+    Open it with ``CrazyflieBackend.open(cfg)``; a ``sim://`` robot flies the simulator through
+    the same adapters (``cf_session``)."""
+
+    def __init__(self, hw: HardwareBackend) -> None:
+        self.hw = hw
+        self.config, self.clock, self.mocap, self.radio = hw.config, hw.clock, hw.mocap, hw.radio
+        self.start_position = hw.start_position
+        self.events = tuple(hw.preflight.events())
+        self._link = radio_link_status(hw.radio)
+
+    @classmethod
+    @contextlib.contextmanager
+    def open(cls, cfg: Config, console: Any = None) -> Iterator["CrazyflieBackend"]:
+        from rich.console import Console
+
+        with cf_session(cfg, console=console or Console(stderr=True)) as hw:
+            yield cls(hw)
+
+    def truth(self) -> np.ndarray | None:
+        return self.hw.truth() if self.hw.truth is not None else None
+
+    def battery_voltage(self) -> float | None:
+        telemetry = self.hw.radio.telemetry()
+        return telemetry.vbat if telemetry is not None else None
+
+    def link_status(self, now: float) -> LinkStatus:
+        return self._link(now)
+
+    def wrap_solver(self, solver: Any) -> Any:
+        return solver  # no injected faults on this path
+
+    def fault_observers(self, model: Any) -> list[Any]:
+        return []
+
+    def after_handback(self) -> dict[str, Any]:
+        extra: dict[str, Any] = {"preflight": self.hw.preflight.to_dict(), "handback": self.hw.radio.handback_note}
+        if self.hw.sim is not None:
+            extra["firmware_after_shutdown"] = self.hw.sim.firmware.supervisor_state
+        return extra
+
+
 def describe(hw: HardwareBackend) -> str:
     """One line for the console: robot, link, mocap."""
     return (f"{hw.robot.name} at {hw.robot.uri}, mocap {hw.mocap.label}, firmware protocol "
@@ -346,6 +370,6 @@ def describe(hw: HardwareBackend) -> str:
 
 
 __all__ = [
-    "HARDWARE_ERRORS", "HardwareBackend", "SimulatedHardware", "SimulatedMotionCapture", "cf_session",
+    "CrazyflieBackend", "HARDWARE_ERRORS", "HardwareBackend", "SimulatedHardware", "SimulatedMotionCapture", "cf_session",
     "describe", "firmware_params", "flight_config", "hardware_backend", "robot_for", "simulated_hardware",
 ]
