@@ -1,6 +1,6 @@
 """The Mellinger "acceleration to attitude" layer: world acceleration + yaw -> RPYT setpoint.
 
-Conventions (hardware-facts §1.2, §6): the angles are what cflib's ``send_setpoint`` takes,
+Conventions (docs/hardware.md#rpyt-setpoint): the angles are what cflib's ``send_setpoint`` takes,
 right-handed ZYX Euler angles in degrees: positive pitch = nose down = accelerate toward
 +x body, positive roll = right side down = accelerate toward -y body. cflib negates pitch
 on the wire itself, so nothing is negated here. The RPYT yaw rate is clockwise-positive

@@ -283,7 +283,8 @@ def train(
     """
     if not 0.0 < step_size <= 1.0:
         raise ValueError(f"step_size is a fraction of each interval in (0, 1], got {step_size}")
-    # Two threads on a shared 2-core machine slowed these small batches 4-80x (solver-timings.md).
+    # Two threads on a shared 2-core machine slowed these small batches 4-80x
+    # (docs/solver-timings.md#training).
     torch.set_num_threads(1)
     params = list(queue.trainable_parameters())
     if not params:

@@ -6,10 +6,11 @@ a rich table), and ``enforce`` refuses take-off on any failure with one line nam
 unless forced, in which case the override is logged.
 
 Thresholds and their sources: battery from the robot type (Crazyswarm2: warn below 3.8 V,
-refuse below 3.7 V at idle; firmware ``pm.state`` 3 = lowPower, HF 5), mocap rate within
-20 % of the expected rate (Crazyswarm2's 80-120 Hz around 100 Hz, HF 3.1), link latency
-10 ms (Crazyswarm2 server.yaml, HF 4), supervisor bits (HF 5), protocol 12 for the
-supervisor port and the emergency-stop watchdog (HF 5).
+refuse below 3.7 V at idle; firmware ``pm.state`` 3 = lowPower; docs/hardware.md#battery), mocap rate within
+20 % of the expected rate (Crazyswarm2's 80-120 Hz around 100 Hz; docs/hardware.md#mocap), link latency
+10 ms (Crazyswarm2 server.yaml; docs/hardware.md#crazyswarm2), supervisor bits
+(docs/hardware.md#supervisor), protocol 12 for the
+supervisor port and the emergency-stop watchdog (docs/hardware.md#emergency-stop).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import numpy as np
 Status = Literal["pass", "warn", "fail"]
 _log = logging.getLogger("cfknode.preflight")
 
-# supervisor.info bits (HF 5)
+# supervisor.info bits (docs/hardware.md#supervisor)
 SUP_CAN_FLY = 1 << 3
 SUP_FLYING = 1 << 4
 SUP_TUMBLED = 1 << 5
@@ -33,7 +34,7 @@ SUP_CRASHED = 1 << 7
 
 PM_LOW_POWER = 3
 PM_SHUTDOWN = 4
-SUPERVISOR_PROTOCOL = 12  # supervisor port, emergency-stop watchdog (HF 5)
+SUPERVISOR_PROTOCOL = 12  # supervisor port, emergency-stop watchdog (docs/hardware.md#emergency-stop)
 MIN_PROTOCOL = 4  # log/param TOC v2 with 16-bit ids, which every current cflib speaks
 RATE_WARN_FRACTION = 0.2  # +-20 %: Crazyswarm2's 80-120 Hz around 100 Hz
 RATE_FAIL_FRACTION = 0.5  # +-50 %: too far from what the estimator and the extpose stream expect
@@ -211,7 +212,7 @@ def check_rigid_body(s: PreflightSnapshot) -> CheckResult:
 
 def check_level(s: PreflightSnapshot) -> CheckResult:
     """A robot tilted on the ground, or a mocap object whose axes are not the Crazyflie's
-    (z must be up: HF 3.1), would be flown upside down by the attitude layer."""
+    (z must be up: docs/hardware.md#mocap), would be flown upside down by the attitude layer."""
     expected = f"tilt <= {s.max_tilt_deg:g} deg"
     if s.body_quaternion is None:
         return CheckResult("level", "fail", "no attitude", expected, f"no attitude for {s.robot!r} from the mocap")
