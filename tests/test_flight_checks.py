@@ -83,3 +83,13 @@ def test_robots_file_values_are_bounded_with_the_robot_named(tmp_path):
     bad = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, battery_land_v=3.9))
     with pytest.raises(ConfigError, match=r"^robot cf231: safety.battery_land_v = 3.9 V must be below"):
         refuse_unflyable(bad, where="robot cf231")
+
+
+def test_a_low_thrust_to_weight_warns_before_take_off() -> None:
+    from cfknode.app.flight_checks import LOW_THRUST_TO_WEIGHT, thrust_margin_warnings
+
+    assert thrust_margin_warnings(load_config()) == []  # the Crazyflie 2.1 has about 1.5 at the clamp
+    heavy = load_config(overrides={"sim.mass_changes": [{"t": 5.0, "factor": 1.33}]})
+    (warning,) = thrust_margin_warnings(heavy)
+    assert warning["level"] == "warning" and "1.33x mass" in warning["text"]
+    assert f"below {LOW_THRUST_TO_WEIGHT}" in warning["text"]

@@ -48,9 +48,30 @@ def refuse_unflyable(cfg: Config, where: str = "") -> list[dict[str, Any]]:
         problem = writable_dir_problem(path, key)
         if problem is not None:
             raise ConfigError(problem)
+    events = thrust_margin_warnings(cfg)
     problem = trajectory_problem(cfg)
     if problem is None:
-        return []
+        return events
     if not cfg.hardware.force:
         raise ConfigError(f"refusing to take off: {problem} (hardware.force / --force flies it clamped)")
-    return [{"level": "warning", "text": f"take-off FORCED despite: {problem}", "source": "preflight"}]
+    return [*events, {"level": "warning", "text": f"take-off FORCED despite: {problem}", "source": "preflight"}]
+
+
+LOW_THRUST_TO_WEIGHT = 1.3  # below this at the clamp, a payload or a sagging battery leaves no margin to climb
+
+
+def thrust_margin_warnings(cfg: Config) -> list[dict[str, Any]]:
+    """A warning (logged, and printed by the CLI) when the thrust the controller may plan is under
+    1.3 times the weight, for the nominal vehicle and for the heaviest simulated mass step."""
+    v, c = cfg.vehicle, cfg.controller
+    usable = c.max_thrust_fraction * v.max_thrust
+    factors = [1.0] + ([max(m.factor for m in cfg.sim.mass_changes)] if cfg.backend == "sim" and cfg.sim.mass_changes
+                       else [])
+    worst = max(factors)
+    ratio = usable / (v.mass * worst * v.gravity)
+    if ratio >= LOW_THRUST_TO_WEIGHT:
+        return []
+    what = "the vehicle" if worst == 1.0 else f"the vehicle at {worst:g}x mass"
+    text = (f"thrust-to-weight at the thrust clamp is {ratio:.2f} for {what} (below {LOW_THRUST_TO_WEIGHT}): "
+            "little margin to climb or to tilt; the controller keeps altitude before it tilts")
+    return [{"level": "warning", "text": text, "source": "preflight"}]

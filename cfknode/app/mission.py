@@ -9,6 +9,7 @@ around the simulator's parts, and nowhere in the flight path.
 from __future__ import annotations
 
 import asyncio
+import logging
 import contextlib
 import dataclasses
 from dataclasses import dataclass
@@ -32,6 +33,9 @@ from cfknode.flight.trajectory import make_trajectory
 from cfknode.app.ui.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
+
+
+_logger = logging.getLogger(__name__)
 
 
 class MissionError(RuntimeError):
@@ -116,6 +120,8 @@ def run_flight(
         session = _crazyflie(cfg, dashboard)
     # Before anything is built or connected: an unflyable config is refused in one line.
     forced = refuse_unflyable(flight_cfg, where="" if flight_cfg is cfg else f"robot {cfg.hardware.robot}")
+    for event in forced:
+        _logger.warning(event["text"])
     from cfknode.app.learning import online_model_slot, start_trainer
 
     model = build_model_slot(flight_cfg)
