@@ -27,10 +27,11 @@ from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
 from cfknode.flight.radio import CflibRadio
 from cfknode.flight.summary import FlightSummary, compute_summary
+from cfknode.flight.tick_guard import GuardedLog, hand_back
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.flight.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
-from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
+from cfknode.safety.supervisor import ERROR_RECORD, Outcome, Supervisor, SupervisorInputs
 from cfknode.safety.watchdogs import radio_link_status, worst_link
 
 
@@ -191,7 +192,8 @@ def _fly_session(
     trajectory = make_trajectory(cfg.trajectory, sess.start_position)
     status = _dashboard_status(cfg) if dashboard is not None else None
     with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
-        log: Any = flight_log if status is None else StatusTap(flight_log, status)
+        # Guarded: a failing write (or dashboard tap) is reported, never the end of the flight.
+        log: Any = GuardedLog(flight_log if status is None else StatusTap(flight_log, status))
         for event in sess.events:
             log.write("/events", 0.0, event)
         supervisor = build_supervisor(
@@ -232,7 +234,8 @@ def _fly_session(
             if status is not None:
                 flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
             record = asyncio.run(flight)
-            sess.radio.shutdown()
+            after = hand_back(sess.radio.shutdown, sess.after_handback,
+                              lambda part, exc: supervisor.internal_error(part, exc, ERROR_RECORD))
             outcome = supervisor.outcome()
             summary = compute_summary(
                 t=record.t,
@@ -258,7 +261,8 @@ def _fly_session(
                     "lockstep": bool(sess.clock.lockstep),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
                     **(online.summary_fields() if online is not None else {}),
-                    **sess.after_handback(),
+                    "internal_errors": list(outcome.errors),
+                    **after,
                 },
             )
             log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
@@ -291,7 +295,8 @@ def _with_dashboard(flight: Any, status: Any, console: Any, sess: Session, super
         if key in ("space", "q"):
             supervisor.request_land(f"operator e-stop key ({key})")
 
-    return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz)
+    return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz,
+                          on_error=lambda exc: supervisor.internal_error("the dashboard", exc, ERROR_RECORD))
 
 
 def _vehicle_after(sim: Any) -> dict[str, Any]:
