@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import signal
+from multiprocessing import resource_tracker
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -66,6 +67,8 @@ class TrainerClient:
         # The child inherits this thread's signal mask: with the stop signals blocked it cannot
         # die of a Ctrl-C meant for the flight before ``trainer_main`` ignores them. The parent
         # loses none: blocked here, they wait (or reach another thread) and are handled as usual.
+        # The resource tracker first: starting it unblocks SIGINT and SIGTERM on this thread.
+        resource_tracker.ensure_running()
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, IGNORED_SIGNALS)
         try:
             proc.start()
