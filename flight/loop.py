@@ -19,12 +19,13 @@ import numpy as np
 
 from cfknode.flight.controller import Controller, TickInfo, TickObserver
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
+from cfknode.flight.tick_guard import GuardedLog, GuardedObserver, fallback_command, hold_reference
 from cfknode.kernel.clock import Clock
-from cfknode.kernel.reference import Reference
+from cfknode.kernel.reference import RefSamples, Reference
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.mocap.source import PoseSource
-from cfknode.safety.operator import EstopMailbox, estop_watch, sigint_handler
-from cfknode.safety.supervisor import BLIND, FLY, MOTORS_OFF, Supervisor
+from cfknode.safety.operator import EstopMailbox, estop_watch, stop_signal_handler
+from cfknode.safety.supervisor import BLIND, ERROR_LAND, ERROR_RECORD, ERROR_STOP, FLY, MOTORS_OFF, Supervisor
 
 __all__ = ["FlightParts", "FlightRecord", "Log", "TickInfo", "TickObserver", "fly"]
 
@@ -102,8 +103,17 @@ class FlightRecord:
 async def fly(parts: FlightParts) -> FlightRecord:
     """Fly the trajectory until the supervisor has cut the motors; returns the per-tick record.
 
-    Ctrl-C (SIGINT) goes to the supervisor while the flight runs: the first lands, the second
-    stops the motors. The e-stop mailbox is open for ``cfknode estop`` for the same span.
+    Stop signals go to the supervisor while the flight runs: the first SIGINT, SIGTERM or
+    SIGHUP lands, the second stops the motors. The e-stop mailbox is open for ``cfknode estop``
+    for the same span.
+
+    No exception from a part ends the loop: the supervisor logs it once, with its traceback
+    (``Supervisor.internal_error``), and the loop degrades. The controller (MPC, model) raising
+    flies the geometric fallback from then on and lands; the trajectory raising holds position
+    and lands; mocap raising lands; the estimator or the fallback raising stops the motors;
+    an observer raising is detached; a log write raising is dropped. The clock (the simulator
+    in lockstep) or the supervisor itself raising stops the motors and ends the loop at once:
+    the radio's hand-back then cuts them.
     """
     controller, traj, sup = parts.controller, parts.trajectory, parts.supervisor
     period = 1.0 / controller.settings.rate_hz
@@ -112,71 +122,160 @@ async def fly(parts: FlightParts) -> FlightRecord:
     last_pose_t = -np.inf
     wall_start = time.perf_counter()
     k = 0
-    with sigint_handler(sup), estop_watch(sup, parts.estop):
-        while not sup.finished:
-            t_tick = k * period
-            await parts.clock.sleep_until(t_tick)
-            start = time.perf_counter()
-            now = parts.clock.now()
 
-            pose = parts.mocap.latest(now)
-            pose_fresh = False
-            if pose is not None and pose.t > last_pose_t:
-                last_pose_t = pose.t
-                if sup.accept_pose(now, pose):
-                    pose_fresh = True
-                    parts.estimator.update(pose)
-                    parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
-                                                    "stamp": pose.t})
-            est = parts.estimator.predict(now, acc_prev)
-            action, ref, source = sup.plan(now, est, traj.sample(controller.preview_times(now)))
+    def fault(part: str, exc: BaseException, action: str) -> None:
+        try:
+            sup.internal_error(part, exc, action)
+        except Exception:  # noqa: BLE001 - the supervisor could not even record it: nothing more to do here
+            pass
 
-            solve_s, ok, status = 0.0, False, ""
-            if action is FLY:
-                command = controller.step(now, est, ref, pose_fresh=pose_fresh, phase=sup.state.value)
-                if controller.adaptation is not None:
-                    parts.log.write("/adaptation", now, controller.adaptation.log())
-                ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
-                if source == "fallback":
-                    rec.fallbacks += 1
-                    rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
-                acc_prev, sp = command.acc, command.setpoint
-            elif action is BLIND:
-                sp, acc_prev = sup.blind_setpoint, sup.blind_acc
-                controller.reset()  # the last solution is stale once flying blind
-            else:
-                controller.idle()
+    def detached(part: str, exc: BaseException) -> None:
+        fault(part, exc, ERROR_RECORD)
+
+    log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
+    log.report_to(detached)
+    observers = [GuardedObserver(o, detached) for o in parts.observers]
+    inner_observers = list(controller.observers)
+    controller.observers[:] = [GuardedObserver(o, detached) for o in inner_observers]
+    controller_failed = estimator_failed = False
+    held: RefSamples | None = None  # the hold reference once the trajectory has raised
+    try:
+        with stop_signal_handler(sup), estop_watch(sup, parts.estop):
+            while not sup.finished:
+                t_tick = k * period
+                try:
+                    await parts.clock.sleep_until(t_tick)
+                    now = parts.clock.now()
+                except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
+                    fault("the clock (the simulator in lockstep)", exc, ERROR_STOP)
+                    break
+                start = time.perf_counter()
+                try:
+                    pose = parts.mocap.latest(now)
+                except Exception as exc:  # noqa: BLE001
+                    fault("the mocap source", exc, ERROR_LAND)
+                    pose = None
+                try:
+                    fresh = pose is not None and pose.t > last_pose_t and sup.accept_pose(now, pose)
+                    if pose is not None:
+                        last_pose_t = max(last_pose_t, pose.t)
+                except Exception as exc:  # noqa: BLE001
+                    fault("the supervisor", exc, ERROR_STOP)
+                    break
+                est = None
+                if not estimator_failed:
+                    try:
+                        if fresh:
+                            parts.estimator.update(pose)
+                        est = parts.estimator.predict(now, acc_prev)
+                    except Exception as exc:  # noqa: BLE001 - no state to fly on, not even the fallback's
+                        estimator_failed = True
+                        fault("the estimator", exc, ERROR_STOP)
+                        est = None
+                if fresh:
+                    log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
+                                              "stamp": pose.t})
+                times = controller.preview_times(now)
+                if held is None:
+                    try:
+                        samples = traj.sample(times)
+                    except Exception as exc:  # noqa: BLE001
+                        fault("the trajectory", exc, ERROR_LAND)
+                        where = est.p if est is not None else rec.p_ref[max(rec.ticks - 1, 0)]
+                        held = hold_reference(times - now, where)
+                if held is not None:
+                    samples = RefSamples(held.t + now, held.p, held.v, held.a, held.yaw)
+                try:
+                    action, ref, source = sup.plan(now, est, samples)
+                except Exception as exc:  # noqa: BLE001
+                    fault("the supervisor", exc, ERROR_STOP)
+                    break
+
+                solve_s, ok, status = 0.0, False, ""
+                command = None
                 sp = MOTORS_OFF
-                if source == "no_state":
-                    rec.no_state_ticks += 1
-            sp = sup.send(now, sp)
-            compute = time.perf_counter() - start
+                if action is FLY and est is not None:
+                    command = None
+                    if not controller_failed:
+                        try:
+                            command = controller.step(now, est, ref, pose_fresh=fresh, phase=sup.state.value)
+                            if controller.adaptation is not None:
+                                log.write("/adaptation", now, controller.adaptation.log())
+                        except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
+                            controller_failed = True
+                            fault("the controller", exc, ERROR_LAND)
+                    if command is None:
+                        try:
+                            command = fallback_command(controller, est, ref, "error")
+                        except Exception as exc:  # noqa: BLE001
+                            fault("the geometric fallback", exc, ERROR_STOP)
+                    if command is not None:
+                        ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
+                        if source == "fallback":
+                            rec.fallbacks += 1
+                            rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
+                        acc_prev, sp = command.acc, command.setpoint
+                    else:
+                        source = "stop"
+                elif action is BLIND:
+                    sp, acc_prev = sup.blind_setpoint, sup.blind_acc
+                    if not controller_failed:
+                        controller.reset()  # the last solution is stale once flying blind
+                else:
+                    if not controller_failed:
+                        controller.idle()
+                    if source == "no_state":
+                        rec.no_state_ticks += 1
+                try:
+                    sp = sup.send(now, sp)
+                except Exception as exc:  # noqa: BLE001
+                    fault("the supervisor", exc, ERROR_STOP)
+                    break
+                compute = time.perf_counter() - start
 
-            missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
-            sup.after_tick(now, source == "fallback", status, missed)
-            truth = parts.truth() if parts.truth is not None else None
-            p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
-            rec.ensure_room()
-            i = rec.ticks
-            rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, ref.p[0]
-            rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
-            rec.ticks += 1
-            _log_tick(parts.log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
-                      status if source == "fallback" else "")
-            model = controller.model
-            version = model.version if model is not None else 0  # the model this tick flew, before any swap
-            if action is FLY:
-                controller.publish(compute_s=compute, missed=missed, supervisor_state=sup.state.value)
-            if parts.observers:
-                info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed, version,
-                                sup.state.value, action is FLY and command.saturated)
-                for observer in parts.observers:
-                    observer.on_tick(info)
+                missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
+                try:
+                    sup.after_tick(now, source == "fallback", status, missed)
+                except Exception as exc:  # noqa: BLE001
+                    fault("the supervisor", exc, ERROR_STOP)
+                    break
+                truth = None
+                if parts.truth is not None:
+                    try:
+                        truth = parts.truth()
+                    except Exception as exc:  # noqa: BLE001
+                        fault("the simulator's true state", exc, ERROR_RECORD)
+                p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
+                rec.ensure_room()
+                i = rec.ticks
+                rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, ref.p[0]
+                rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
+                rec.ticks += 1
+                try:
+                    _log_tick(log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
+                              status if source == "fallback" else "")
+                except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
+                    fault("the flight log (tick messages)", exc, ERROR_RECORD)
+                model = controller.model
+                version = model.version if model is not None else 0  # the model this tick flew, before any swap
+                if action is FLY and not controller_failed:
+                    try:
+                        controller.publish(compute_s=compute, missed=missed, supervisor_state=sup.state.value)
+                    except Exception as exc:  # noqa: BLE001
+                        fault("the controller's observers", exc, ERROR_RECORD)
+                if observers:
+                    saturated = action is FLY and command is not None and command.saturated
+                    info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed,
+                                    version, sup.state.value, saturated)
+                    for observer in observers:
+                        observer.on_tick(info)
 
-            k += 1
-            if not parts.clock.lockstep:
-                # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
-                k = max(k, int(parts.clock.now() / period) + 1)
+                k += 1
+                if not parts.clock.lockstep:
+                    # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
+                    k = max(k, int(parts.clock.now() / period) + 1)
+    finally:
+        controller.observers[:] = inner_observers
     rec.wall_time = time.perf_counter() - wall_start
     rec.events = list(sup.events)
     if controller.adaptation is not None:

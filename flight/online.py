@@ -55,6 +55,10 @@ class Log(Protocol):
     def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
 
 
+# Supervisor states in which the flight is ending (landing, landed, stopped or refused).
+_ENDING_STATES = frozenset({"LAND", "LANDED", "EMERGENCY", "IDLE"})
+
+
 @dataclass(frozen=True)
 class LearnerSettings:
     t_col: float
@@ -215,6 +219,7 @@ class OnlineLearner:
         self._gating: _Gating | None = None
         self._watch: _Watch | None = None
         self.failed = False  # restarts exhausted: learning stopped, flight goes on
+        self.ending = False  # the supervisor is landing or has ended the flight: no trainer restarts
         self._install_work_s = 0.0  # wall time of the last on_tick when it folded, gated or swapped a model
         self.stats = OnlineStats()
         self.rounds: list[RoundRecord] = []
@@ -235,6 +240,8 @@ class OnlineLearner:
 
     def _on_tick(self, tick: TickLike) -> None:
         t = tick.t
+        if getattr(tick, "supervisor_state", "") in _ENDING_STATES:
+            self.ending = True
         window = self.recorder.add(tick)
         if window is not None:
             self._on_window(window)
@@ -334,6 +341,11 @@ class OnlineLearner:
             self.rounds.append(RoundRecord(r.round, r.version, (r.window.t0, r.window.t1), out.sent_t, math.nan,
                                            math.nan, math.nan, math.nan, "lost", fault.reason))
         self._log_model(t, version, "crash", f"{fault.kind}: {fault.reason}")
+        if self.ending:
+            # A model trained now would never fly, and a new trainer would outlive the flight's end.
+            self.failed = True
+            self._log_event(t, "warning", "online trainer lost while the flight is ending; not restarted")
+            return
         if self.stats.restarts >= self.s.max_restarts:
             self.failed = True
             self._log_event(t, "error", f"online trainer failed {self.stats.restarts + 1} times; learning stopped, "

@@ -8,11 +8,20 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import signal
+from multiprocessing import resource_tracker
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from cfknode.models.trainer_process import TrainerReady, TrainerSettings, TrainOutcome, TrainRequest, trainer_main
+from cfknode.models.trainer_process import (
+    IGNORED_SIGNALS,
+    TrainerReady,
+    TrainerSettings,
+    TrainOutcome,
+    TrainRequest,
+    trainer_main,
+)
 
 
 @dataclass(frozen=True)
@@ -56,7 +65,16 @@ class TrainerClient:
         self._reap()
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=trainer_main, args=(child, self.settings), name="cfknode-trainer", daemon=True)
-        proc.start()
+        # The child inherits this thread's signal mask: with the stop signals blocked it cannot
+        # die of a Ctrl-C meant for the flight before ``trainer_main`` ignores them. The parent
+        # loses none: blocked here, they wait (or reach another thread) and are handled as usual.
+        # The resource tracker first: starting it unblocks SIGINT and SIGTERM on this thread.
+        resource_tracker.ensure_running()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, IGNORED_SIGNALS)
+        try:
+            proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child.close()  # only the child holds it now, so its death reads as EOF here
         self._proc, self._conn = proc, parent
         self.pid = proc.pid

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import time
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
@@ -41,6 +42,10 @@ from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
 from cfknode.models.modelfile import ModelFile, Normalisation
 
 CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)
+# Stop signals the trainer ignores: a Ctrl-C in the terminal reaches its whole process group,
+# but only the flight process decides when the flight ends; it stops the trainer over the
+# pipe (or kills it).
+IGNORED_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 # Online input scales are floored at the flight envelope, not one window's spread: a 0.5 s
 # window barely varies (v, u), and standardising by that spread lets the network fit steep,
 # spurious slopes (measured: dr/dv up to +2.4 1/s, dr/du down to -0.9 where the truth was 0
@@ -116,6 +121,9 @@ class TrainOutcome:
 
 def trainer_main(conn: Connection, settings: TrainerSettings) -> None:
     """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF."""
+    for sig in IGNORED_SIGNALS:  # first, before the slow torch import (see IGNORED_SIGNALS)
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, IGNORED_SIGNALS)  # blocked by the parent while spawning
     import torch
 
     # One thread: two on these shared 2-core machines slowed small batches 4-80x

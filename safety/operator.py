@@ -1,8 +1,9 @@
-"""Operator controls that reach a flight from outside the loop: Ctrl-C and ``cfknode estop``.
+"""Operator controls that reach a flight from outside the loop: stop signals and ``cfknode estop``.
 
-- SIGINT: installed with ``loop.add_signal_handler`` on the flight's own event loop, so the
-  handler runs between ticks as an ordinary callback (never inside a tick), and the previous
-  handler is put back when the flight ends. First Ctrl-C lands, the second stops the motors.
+- SIGINT (Ctrl-C), SIGTERM (``kill``, a service manager) and SIGHUP (the terminal closed):
+  installed with ``loop.add_signal_handler`` on the flight's own event loop, so the handler
+  runs between ticks as an ordinary callback (never inside a tick), and the previous handlers
+  are put back when the flight ends. The first signal lands, the second stops the motors.
 - The e-stop mailbox (``estop_mailbox``): the flight announces itself in a private directory
   and ``cfknode estop`` leaves a request file addressed to that one flight. A small task on
   the flight's event loop looks for it 20 times a second, between ticks (a file-system call
@@ -20,14 +21,17 @@ from typing import Any, Callable, Iterator, Protocol
 
 from cfknode.safety.estop_mailbox import EstopMailbox, describe_error, mailbox_dir
 
-__all__ = ["EstopMailbox", "estop_watch", "mailbox_dir", "sigint_handler"]
+__all__ = ["STOP_SIGNALS", "EstopMailbox", "estop_watch", "mailbox_dir", "stop_signal_handler"]
+
+# The signals that end a flight the safe way (a landing, then a stop), never at once.
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 # A flood guard: after this many distinct mailbox errors in one flight, the rest are not logged.
 MAX_REPORTED_ERRORS = 20
 
 
 class Interruptible(Protocol):
-    def interrupt(self) -> None: ...
+    def interrupt(self, signal_name: str) -> None: ...
 
 
 class Stoppable(Protocol):
@@ -39,25 +43,35 @@ class Stoppable(Protocol):
 
 
 @contextlib.contextmanager
-def sigint_handler(target: Interruptible) -> Iterator[bool]:
-    """Route SIGINT to ``target.interrupt()`` on the running event loop while the block runs.
+def stop_signal_handler(target: Interruptible, signals: tuple[signal.Signals, ...] = STOP_SIGNALS) -> Iterator[bool]:
+    """Route ``signals`` to ``target.interrupt(name)`` on the running event loop while the block runs.
 
-    Yields whether the handler is installed (only the main thread may set signal handlers;
-    elsewhere Ctrl-C keeps its previous meaning). The previous handler is restored on exit.
+    Yields whether the handlers are installed (only the main thread may set signal handlers;
+    elsewhere the signals keep their previous meaning). The previous handlers are restored on exit.
     """
     loop = asyncio.get_running_loop()
-    previous: Callable[..., Any] | int | None = signal.getsignal(signal.SIGINT)
+    previous: dict[signal.Signals, Callable[..., Any] | int | None] = {}
     try:
-        loop.add_signal_handler(signal.SIGINT, target.interrupt)
+        for sig in signals:
+            handler = signal.getsignal(sig)
+            loop.add_signal_handler(sig, target.interrupt, sig.name)
+            previous[sig] = handler  # only once added: those are the ones to put back
     except (RuntimeError, ValueError, NotImplementedError):
+        _restore(loop, previous)
         yield False
         return
     try:
         yield True
     finally:
-        loop.remove_signal_handler(signal.SIGINT)
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        _restore(loop, previous)
+
+
+def _restore(loop: asyncio.AbstractEventLoop, previous: dict[signal.Signals, Any]) -> None:
+    for sig, handler in previous.items():
+        loop.remove_signal_handler(sig)  # leaves the default disposition: put the previous one back
+        if handler is not None:
+            signal.signal(sig, handler)
+
 
 
 @contextlib.contextmanager

@@ -44,6 +44,7 @@ from cfknode.kernel.reference import RefSamples
 from cfknode.mocap.source import Pose
 from cfknode.safety.geofence import Geofence, axis_name, clamp_reference
 from cfknode.safety.landing import Landing
+from cfknode.safety.part_errors import PartError, describe_error, signal_stop_text
 from cfknode.safety.watchdogs import LinkSource, LowPass, Persistence, tilt_cos, tilt_deg
 
 MOTORS_OFF = AttitudeSetpoint(0.0, 0.0, 0.0, 0)
@@ -77,6 +78,8 @@ class State(str, Enum):
 
 _FLYING = frozenset({State.TAKEOFF, State.TRACK, State.LAND})
 _STOP, _LAND = "stop", "land"
+# What the loop asks of ``internal_error``: land, stop the motors, or only record it.
+ERROR_LAND, ERROR_STOP, ERROR_RECORD = _LAND, _STOP, "record"
 
 
 class Radio(Protocol):
@@ -111,6 +114,7 @@ class Outcome:
     message: str
     cause: str  # "complete", or the code of what landed/stopped/refused it
     t: float  # flight time the cause fired (NaN for a complete flight)
+    errors: tuple[str, ...] = ()  # one line per distinct internal error (their tracebacks are in the log)
 
 
 @dataclass(frozen=True)
@@ -187,7 +191,9 @@ class Supervisor:
         self._now = 0.0
         self._tick = 0
         self._requests: deque[tuple[str, str, str, str]] = deque()  # (kind, cause, text, note)
-        self._interrupts = 0
+        self._interrupts: list[str] = []  # stop signals received, oldest first
+        self._errors: dict[tuple[str, str, str], PartError] = {}
+        self.error_repeats = 0  # internal errors seen again after their first report
         # Watchdog readings and timers.
         self._pose_t = -math.inf
         self._fresh = False  # a frame arrived since the last tracking check
@@ -246,7 +252,10 @@ class Supervisor:
             message = f"flight ended in {state.value}" + (f": {text}" if text else "")
         if self.fallback_ticks:
             message += f"; the geometric fallback flew {self.fallback_ticks} ticks"
-        return Outcome(state, message, self._cause or "complete", t)
+        errors = tuple(e.line for e in self._errors.values())
+        if errors and self._cause != "internal_error":
+            message += f"; {len(errors)} internal error{'s' if len(errors) > 1 else ''} (see the log)"
+        return Outcome(state, message, self._cause or "complete", t, errors)
 
     # --- operator requests (any thread, or a signal callback) ------------------------------------
 
@@ -262,13 +271,53 @@ class Supervisor:
         """An event from a part outside the loop (the e-stop mailbox), at the latest tick's time."""
         self._event(self._now, level, text, source=source)
 
-    def interrupt(self) -> None:
-        """SIGINT: the first lands, the second stops the motors."""
-        self._interrupts += 1
-        if self._interrupts == 1:
-            self._requests.append((_LAND, "sigint", "Ctrl-C (SIGINT)", "Ctrl-C again stops the motors"))
+    def interrupt(self, signal_name: str = "SIGINT") -> None:
+        """A stop signal (SIGINT, SIGTERM, SIGHUP): the first lands, the second of any of them
+        stops the motors. The cause is the signal's name in lower case (``sigterm``, then
+        ``sigterm_stop``)."""
+        self._interrupts.append(signal_name)
+        text = signal_stop_text(signal_name)
+        code = signal_name.lower()
+        if len(self._interrupts) == 1:
+            again = "Ctrl-C again" if signal_name == "SIGINT" else f"another {signal_name} (or Ctrl-C)"
+            self._requests.append((_LAND, code, text, f"{again} stops the motors"))
         else:
-            self._requests.append((_STOP, "sigint_stop", "second Ctrl-C (SIGINT)", ""))
+            first = self._interrupts[0]
+            said = f"second {text}" if first == signal_name else f"{text} after {signal_stop_text(first)}"
+            self._requests.append((_STOP, f"{code}_stop", said, ""))
+
+    def internal_error(self, part: str, exc: BaseException, action: str = ERROR_LAND) -> PartError | None:
+        """An exception from ``part`` of the flight, at the latest tick's time.
+
+        The first of each distinct error goes on ``/events`` with its traceback; repeats are
+        only counted. ``action``: ``ERROR_LAND`` lands (a supervised landing, even when the
+        trajectory's own landing is under way, so a broken reference or controller does not
+        decide where the drone sets down), ``ERROR_STOP`` stops the motors, ``ERROR_RECORD``
+        only records it (a detached observer, a log write). Returns the new error, or None for
+        a repeat. Called on the loop's thread only.
+        """
+        error = describe_error(part, exc)
+        if error.key in self._errors:
+            self.error_repeats += 1
+            return None
+        self._errors[error.key] = error
+        now = self._now
+        what = {_LAND: "landing", _STOP: "stopping the motors"}.get(action, "the flight goes on")
+        self.events.append(f"{now:.3f} s error: {error.line}")
+        self._log.write("/events", now, {"level": "error", "text": f"{error.line}: {what}", "source": "internal_error",
+                                         "part": part, "traceback": error.traceback})
+        if action == _STOP:
+            self._escalate(now, _STOP, "internal_error", f"internal error in {part}", error.line)
+        elif action == _LAND:
+            if self._state is State.LAND and self._landing_mode == "nominal":
+                self._landing_mode, self._landing = "supervised", None
+            self._escalate(now, _LAND, "internal_error", f"internal error in {part}", error.line)
+        return error
+
+    @property
+    def errors(self) -> tuple[PartError, ...]:
+        """The distinct internal errors so far, oldest first."""
+        return tuple(self._errors.values())
 
     # --- the gate -------------------------------------------------------------------------------
 

@@ -46,6 +46,8 @@ class SimCrazyflie:
         self._mass = mass_at(0.0, self._nominal_mass, self._mass_changes)
         self._k = 0
         self._observers: list[StepObserver] = []
+        self.failure: str | None = None  # why the plant stopped (it raised); time still advances
+        self._firmware_runs = True  # while frozen: until the firmware itself raises
 
     @property
     def t(self) -> float:
@@ -82,22 +84,48 @@ class SimCrazyflie:
             self._observers.append(cb)
 
     def step_to(self, t_target: float) -> None:
-        """Advance in ``dt`` steps until ``t >= t_target - 1e-12``."""
+        """Advance in ``dt`` steps until ``t >= t_target - 1e-12``.
+
+        A step that raises (a zero mass, a broken scenario) raises once and freezes the plant
+        where it was: later calls advance the time and the firmware (so the flight's stop and
+        the radio's hand-back, which wait on simulated time, finish, and the firmware shows
+        what it made of them), but not the vehicle. ``failure`` says why.
+        """
         with self.lock:
-            dt = self.dt
-            vehicle = self.vehicle
-            firmware = self.firmware
-            battery = self.battery
-            while self._k * dt < t_target - 1e-12:
-                t = self._k * dt
-                x = vehicle.state_list()
-                motors = firmware.step(t, x)
-                self._mass = mass = mass_at(t, self._nominal_mass, self._mass_changes)
-                vehicle.step(motors, mass)
-                self._k += 1
-                battery.update(vehicle.state_list()[13:], dt)
-                if self._observers:
-                    t_new = self._k * dt
-                    state = vehicle.state
-                    for cb in self._observers:
-                        cb(t_new, state)
+            if self.failure is not None:
+                self._step_frozen(t_target)
+                return
+            try:
+                self._step_to(t_target)
+            except Exception as exc:
+                self.failure = f"{type(exc).__name__}: {exc} at t = {self.t:.3f} s"
+                raise
+
+    def _step_frozen(self, t_target: float) -> None:
+        x = self.vehicle.state_list()
+        while self._k * self.dt < t_target - 1e-12:
+            if self._firmware_runs:
+                try:
+                    self.firmware.step(self._k * self.dt, x)
+                except Exception:  # noqa: BLE001 - the firmware was what failed: it stays where it is
+                    self._firmware_runs = False
+            self._k += 1
+
+    def _step_to(self, t_target: float) -> None:
+        dt = self.dt
+        vehicle = self.vehicle
+        firmware = self.firmware
+        battery = self.battery
+        while self._k * dt < t_target - 1e-12:
+            t = self._k * dt
+            x = vehicle.state_list()
+            motors = firmware.step(t, x)
+            self._mass = mass = mass_at(t, self._nominal_mass, self._mass_changes)
+            vehicle.step(motors, mass)
+            self._k += 1
+            battery.update(vehicle.state_list()[13:], dt)
+            if self._observers:
+                t_new = self._k * dt
+                state = vehicle.state
+                for cb in self._observers:
+                    cb(t_new, state)

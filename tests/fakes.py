@@ -26,6 +26,7 @@ class Tick:
     source: str = "mpc"
     model_version: int = 0
     compute_s: float = 0.0
+    supervisor_state: str = ""
 
 
 class ListLog:

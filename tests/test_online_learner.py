@@ -85,13 +85,14 @@ class Flight:
         self.v = np.zeros(3)
         self.rng = np.random.default_rng(0)
         self.r = TRUE_R.copy()  # the plant's residual (a test may change the world mid-flight)
+        self.state = "TRACK"  # the supervisor's state the ticks report
 
     def run(self, seconds: float, source: str = "mpc") -> None:
         for _ in range(int(round(seconds / PERIOD))):
             t = self.k * PERIOD
             u = np.array([0.3 * math.sin(5 * t), 0.2 * math.cos(4 * t), 2.0 + 0.3 * math.sin(3 * t)])
             est = Est(np.array([0.0, 0.0, 1.0 if self.k else 0.0]), self.v.copy())
-            self.learner.on_tick(Tick(t, est, u, source, self.slot.version))
+            self.learner.on_tick(Tick(t, est, u, source, self.slot.version, supervisor_state=self.state))
             self.v = self.v + PERIOD * (u + self.r)
             self.k += 1
 
@@ -197,6 +198,17 @@ def test_the_monitor_can_be_turned_off() -> None:
     flight.r = np.array([0.0, 0.0, 0.5])
     flight.run(0.3)
     assert learner.monitor is None and learner.stats.drops == 0 and slot.version == 1
+
+
+def test_no_trainer_restart_once_the_flight_is_landing() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req), max_restarts=3)
+    flight.state = "LAND"
+    trainer.fault = TrainerFault("crash", "trainer process exited (code 70)")
+    flight.run(0.6)
+    assert learner.stats.crashes == 1 and learner.stats.restarts == 0 and learner.failed
+    assert trainer.state == "stopped"  # never started again
+    assert [m["event"] for m in log.topic("/model")] == ["crash"]
+    assert "not restarted" in log.topic("/events")[-1]["text"]
 
 
 def test_a_crash_restarts_the_trainer_and_the_window_waits() -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from cfknode.app.cli import main
 from cfknode.safety.estop_mailbox import find_flight, live_flights, post
-from cfknode.safety.operator import EstopMailbox, estop_watch, mailbox_dir, sigint_handler
+from cfknode.safety.operator import EstopMailbox, estop_watch, mailbox_dir, stop_signal_handler
 
 
 def test_mailbox_dir_defaults(monkeypatch, tmp_path):
@@ -89,34 +89,44 @@ def test_estop_command_refuses_a_shared_directory(tmp_path, capsys):
 
 class Target:
     def __init__(self) -> None:
-        self.calls = 0
+        self.calls: list[str] = []
 
-    def interrupt(self) -> None:
-        self.calls += 1
+    def interrupt(self, signal_name: str) -> None:
+        self.calls.append(signal_name)
 
 
-def test_sigint_goes_to_the_target_and_the_old_handler_comes_back():
+def test_stop_signals_go_to_the_target_and_the_old_handlers_come_back():
     target = Target()
-    before = signal.getsignal(signal.SIGINT)
+    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    before = {sig: signal.getsignal(sig) for sig in signals}
 
-    async def flight() -> bool:
-        with sigint_handler(target) as installed:
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)
-            for _ in range(10):
-                await asyncio.sleep(0.001)
-            return installed
+    def mine(signum, frame):  # a caller's own handler, to be put back
+        raise AssertionError("not while the flight runs")
 
-    assert asyncio.run(flight())
-    assert target.calls == 2
-    assert signal.getsignal(signal.SIGINT) is before
+    signal.signal(signal.SIGTERM, mine)
+    try:
+        async def flight() -> bool:
+            with stop_signal_handler(target) as installed:
+                for sig in signals:
+                    os.kill(os.getpid(), sig)
+                for _ in range(10):
+                    await asyncio.sleep(0.001)
+                return installed
+
+        assert asyncio.run(flight())
+        assert target.calls == ["SIGINT", "SIGTERM", "SIGHUP"]
+        assert signal.getsignal(signal.SIGINT) is before[signal.SIGINT]
+        assert signal.getsignal(signal.SIGHUP) is before[signal.SIGHUP]
+        assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, before[signal.SIGTERM])
 
 
-def test_sigint_handler_off_the_main_thread_is_not_installed():
+def test_stop_signal_handler_off_the_main_thread_is_not_installed():
     out: list[bool] = []
 
     async def flight() -> None:
-        with sigint_handler(Target()) as installed:
+        with stop_signal_handler(Target()) as installed:
             out.append(installed)
 
     worker = threading.Thread(target=lambda: asyncio.run(flight()))

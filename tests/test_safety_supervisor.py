@@ -316,6 +316,20 @@ def test_interrupt_lands_then_stops():
     assert rig.sup.outcome().message.startswith("motors stopped: second Ctrl-C (SIGINT)")
 
 
+def test_stop_signals_name_their_cause():
+    """Any mix of stop signals: the first lands with its name, the second stops with both."""
+    rig = Rig()
+    rig.to_track()
+    rig.sup.interrupt("SIGHUP")
+    rig.tick()
+    assert rig.sup.state is State.LAND and rig.sup.outcome().cause == "sighup"
+    rig.sup.interrupt("SIGINT")
+    rig.tick()
+    outcome = rig.sup.outcome()
+    assert outcome.state is State.EMERGENCY and outcome.cause == "sigint_stop"
+    assert outcome.message.startswith("motors stopped: Ctrl-C (SIGINT) after SIGHUP (terminal closed) at")
+
+
 def test_an_interrupt_before_take_off_refuses_it():
     rig = Rig()
     rig.sup.interrupt()

@@ -51,9 +51,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ConfigError, UsageError) as exc:
             print(f"cfknode: error: {exc}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
-            print("cfknode: interrupted", file=sys.stderr)
-            return 130
+        except KeyboardInterrupt as exc:
+            # Ctrl-C, or SIGTERM/SIGHUP before a flight could take off: 128 + the signal's number.
+            signum = getattr(exc, "signum", 2)
+            print("cfknode: interrupted" + (f" ({exc})" if signum != 2 else ""), file=sys.stderr)
+            return 128 + signum
 
 
 if __name__ == "__main__":

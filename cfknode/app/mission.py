@@ -29,10 +29,11 @@ from cfknode.flight.mpc import TranslationalMpc
 from cfknode.app.backends.base import Backend
 from cfknode.app.backends.sim import SimulatorBackend
 from cfknode.app.ui.summary import FlightSummary, compute_summary
+from cfknode.flight.tick_guard import GuardedLog, hand_back
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.app.ui.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
-from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
+from cfknode.safety.supervisor import ERROR_RECORD, Outcome, Supervisor, SupervisorInputs
 
 
 _logger = logging.getLogger(__name__)
@@ -184,7 +185,8 @@ def _fly_session(
     trajectory = make_trajectory(cfg.trajectory, sess.start_position)
     status = _dashboard_status(cfg) if dashboard is not None else None
     with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
-        log: Any = flight_log if status is None else StatusTap(flight_log, status)
+        # Guarded: a failing write (or dashboard tap) is reported, never the end of the flight.
+        log: Any = GuardedLog(flight_log if status is None else StatusTap(flight_log, status))
         for event in events:
             log.write("/events", 0.0, event)
         supervisor = build_supervisor(
@@ -225,7 +227,8 @@ def _fly_session(
             if status is not None:
                 flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
             record = asyncio.run(flight)
-            sess.radio.shutdown()
+            after = hand_back(sess.radio.shutdown, sess.after_handback,
+                              lambda part, exc: supervisor.internal_error(part, exc, ERROR_RECORD))
             outcome = supervisor.outcome()
             summary = compute_summary(
                 t=record.t,
@@ -252,7 +255,8 @@ def _fly_session(
                     "mocap_dropouts": sess.mocap.stats().dropouts,
                     **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
-                    **sess.after_handback(),
+                    "internal_errors": list(outcome.errors),
+                    **after,
                 },
             )
             log.write("/summary", record.t[-1] if record.ticks else 0.0, summary.to_dict())
@@ -290,7 +294,8 @@ def _with_dashboard(flight: Any, status: Any, console: Any, sess: Backend, super
         if key in ("space", "q"):
             supervisor.request_land(f"operator e-stop key ({key})")
 
-    return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz)
+    return with_dashboard(flight, status, console, on_key, cfg.dashboard.refresh_hz,
+                          on_error=lambda exc: supervisor.internal_error("the dashboard", exc, ERROR_RECORD))
 
 
 @contextlib.contextmanager

@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     from cfknode.app.ui.dashboard import should_show_dashboard
     from cfknode.app.ui.summary import render_summary, summary_to_json
     from cfknode.app.mission import MissionError, run_flight
+    from cfknode.safety.process_signals import ProcessSignals
 
     console = Console(stderr=args.json)
     t = cfg.trajectory
@@ -115,8 +116,11 @@ def run(args: argparse.Namespace) -> int:
             f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
         )
     show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
+    # SIGTERM and SIGHUP end a flight as Ctrl-C does (land, then stop), never the process at once.
     try:
-        result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None)
+        with ProcessSignals() as signals:
+            result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None,
+                                on_supervisor=signals.route)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1
@@ -126,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
         render_summary(result.summary, console)
     # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
     print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
-    # 0 only for a mission flown to the end and fully logged; a watchdog landing, a stop, a
-    # refusal or a log that stopped writing (recorded data lost) is 1.
+    for error in result.outcome.errors:  # the tracebacks are in the log, never on the terminal
+        print(f"cfknode: {error}; traceback in {result.summary.log_path} (/events)", file=sys.stderr)
+    # 0 only for a mission flown to the end, fully logged and without an internal error; a
+    # watchdog landing, a stop signal, a stop, a refusal or a log that stopped writing is 1.
     complete = result.outcome.state.value == "LANDED" and result.outcome.cause == "complete"
-    return 0 if complete and result.log_incomplete is None else 1
+    return 0 if complete and result.log_incomplete is None and not result.outcome.errors else 1

@@ -128,7 +128,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
     ChannelSpec(
         "/events", "cfknode.Event", "Discrete events: supervisor transitions, warnings, faults.",
         {"level": _str("debug, info, warning, error or critical"), "text": _str("what happened")},
-        {"source": _str("the part that raised it")},
+        {"source": _str("the part that raised it"),
+         "part": _str("internal errors: the part of the flight that raised"),
+         "traceback": _str("internal errors: the traceback, logged once per distinct error")},
         flush=True,
     ),
     ChannelSpec(

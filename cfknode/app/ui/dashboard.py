@@ -478,15 +478,31 @@ async def with_dashboard(
     console: Console,
     on_key: KeyCallback | None = None,
     refresh_hz: float = 10.0,
+    on_error: Callable[[BaseException], None] | None = None,
 ) -> T:
-    """Await ``flight`` (e.g. ``fly(parts)``) with the dashboard drawing beside it; its result."""
+    """Await ``flight`` (e.g. ``fly(parts)``) with the dashboard drawing beside it; its result.
+
+    ``on_error(exc)``: the dashboard raised. It is called as soon as that happens and the
+    flight goes on without a dashboard; without it the error is raised once the flight ends.
+    """
     stop = asyncio.Event()
     task = asyncio.create_task(run_dashboard(status, stop, console, on_key, refresh_hz))
+    if on_error is not None:
+        task.add_done_callback(lambda done: _report_failure(done, on_error))
     try:
         return await flight
     finally:
         stop.set()
-        await task
+        try:
+            await task
+        except Exception:
+            if on_error is None:
+                raise
+
+
+def _report_failure(task: asyncio.Task[Any], on_error: Callable[[BaseException], None]) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        on_error(task.exception())
 
 
 class DashboardStarter:
