@@ -29,9 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
-from enum import Enum
-from typing import Any, Callable, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -44,94 +42,40 @@ from cfknode.kernel.reference import RefSamples
 from cfknode.mocap.source import Pose
 from cfknode.safety.geofence import Geofence, axis_name, clamp_reference
 from cfknode.safety.landing import Landing
-from cfknode.safety.part_errors import PartError, describe_error, signal_stop_text
-from cfknode.safety.watchdogs import LinkSource, LowPass, Persistence, tilt_cos, tilt_deg
+from cfknode.safety.part_errors import PartError
+from cfknode.safety.watchdogs import LowPass, Persistence, tilt_cos, tilt_deg
 
-MOTORS_OFF = AttitudeSetpoint(0.0, 0.0, 0.0, 0)
-FLY, BLIND, OFF = "fly", "blind", "off"
-# Zeros streamed after the motors are cut, before the radio's hand-back: briefly after a
-# landing (as the flight loop always did), longer after a stop so the log shows the fall.
-CUTOFF_HOLD_S = 0.2
-STOP_HOLD_S = 1.0
-# A flight that has not ended this long after its trajectory is stopped (it cannot happen
-# with the landing rules below; this bounds the loop whatever happens).
-MAX_OVERTIME_S = 30.0
-# Slow inputs are read on a 40-tick cycle (0.1 s at 400 Hz), at most one per tick so that no
-# tick pays for two: the link every 10 ticks, the battery every 20, the /safety status once.
-_CYCLE = 40
-_SCHEDULE = {0: "battery", 5: "link", 10: "status", 15: "link", 20: "battery", 25: "link", 35: "link"}
-# The start pose must be this close to level to take off.
-MAX_START_TILT_DEG = 20.0
-TOUCHDOWN_S = 0.1
-_TIME_EPS = 1e-9
-
-
-class State(str, Enum):
-    IDLE = "IDLE"
-    PREFLIGHT = "PREFLIGHT"
-    TAKEOFF = "TAKEOFF"
-    TRACK = "TRACK"
-    LAND = "LAND"
-    LANDED = "LANDED"
-    EMERGENCY = "EMERGENCY"
-
-
-_FLYING = frozenset({State.TAKEOFF, State.TRACK, State.LAND})
-_STOP, _LAND = "stop", "land"
-# What the loop asks of ``internal_error``: land, stop the motors, or only record it.
-ERROR_LAND, ERROR_STOP, ERROR_RECORD = _LAND, _STOP, "record"
+from cfknode.safety.supervisor_inputs import SlowInputs
+from cfknode.safety.supervisor_requests import OperatorRequests
+from cfknode.safety.supervisor_types import (  # noqa: F401 (re-exported: the loop and the mission use them)
+    MOTORS_OFF,
+    FLY,
+    BLIND,
+    OFF,
+    CUTOFF_HOLD_S,
+    STOP_HOLD_S,
+    MAX_OVERTIME_S,
+    _CYCLE,
+    _SCHEDULE,
+    MAX_START_TILT_DEG,
+    TOUCHDOWN_S,
+    _TIME_EPS,
+    State,
+    _FLYING,
+    _STOP,
+    _LAND,
+    ERROR_LAND,
+    ERROR_STOP,
+    ERROR_RECORD,
+    Radio,
+    Log,
+    SupervisorInputs,
+    Outcome,
+    SafetySnapshot,
+)
 
 
-class Radio(Protocol):
-    def set_setpoint(self, sp: AttitudeSetpoint) -> None: ...
-
-    def set_extpose(self, position: np.ndarray, quaternion: np.ndarray) -> None: ...
-
-    def pump(self, now: float) -> None: ...
-
-
-class Log(Protocol):
-    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
-
-
-@dataclass(frozen=True)
-class SupervisorInputs:
-    """Where the supervisor reads what the loop does not hand it.
-
-    ``battery_voltage()``: volts or None when unknown (simulator: ``sim.battery_voltage``;
-    hardware: ``pm.vbat`` telemetry). ``link_status(now)``: see ``watchdogs.LinkStatus``.
-    """
-
-    battery_voltage: Callable[[], float | None] | None = None
-    link_status: LinkSource | None = None
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """How the flight ended: the final state, one line for the user, and the cause."""
-
-    state: State
-    message: str
-    cause: str  # "complete", or the code of what landed/stopped/refused it
-    t: float  # flight time the cause fired (NaN for a complete flight)
-    errors: tuple[str, ...] = ()  # one line per distinct internal error (their tracebacks are in the log)
-
-
-@dataclass(frozen=True)
-class SafetySnapshot:
-    """The supervisor's readings, for a dashboard (never for control)."""
-
-    state: State
-    cause: str
-    pose_age_s: float
-    fence_margin_m: float
-    tracking_error_m: float
-    battery_v: float
-    link_silence_s: float
-    fallback_run: int  # MPC failures in a row
-
-
-class Supervisor:
+class Supervisor(OperatorRequests, SlowInputs):
     """The flight's state machine and the radio's gate (see the module docstring)."""
 
     def __init__(
@@ -256,68 +200,6 @@ class Supervisor:
         if errors and self._cause != "internal_error":
             message += f"; {len(errors)} internal error{'s' if len(errors) > 1 else ''} (see the log)"
         return Outcome(state, message, self._cause or "complete", t, errors)
-
-    # --- operator requests (any thread, or a signal callback) ------------------------------------
-
-    def request_land(self, reason: str = "operator e-stop key", cause: str = "operator_land") -> None:
-        """Land as soon as possible (the dashboard's e-stop key)."""
-        self._requests.append((_LAND, cause, reason, ""))
-
-    def request_stop(self, reason: str = "operator stop", cause: str = "operator_stop") -> None:
-        """Stop the motors at the next tick, wherever the drone is."""
-        self._requests.append((_STOP, cause, reason, ""))
-
-    def note(self, level: str, text: str, source: str = "supervisor") -> None:
-        """An event from a part outside the loop (the e-stop mailbox), at the latest tick's time."""
-        self._event(self._now, level, text, source=source)
-
-    def interrupt(self, signal_name: str = "SIGINT") -> None:
-        """A stop signal (SIGINT, SIGTERM, SIGHUP): the first lands, the second of any of them
-        stops the motors. The cause is the signal's name in lower case (``sigterm``, then
-        ``sigterm_stop``)."""
-        self._interrupts.append(signal_name)
-        text = signal_stop_text(signal_name)
-        code = signal_name.lower()
-        if len(self._interrupts) == 1:
-            again = "Ctrl-C again" if signal_name == "SIGINT" else f"another {signal_name} (or Ctrl-C)"
-            self._requests.append((_LAND, code, text, f"{again} stops the motors"))
-        else:
-            first = self._interrupts[0]
-            said = f"second {text}" if first == signal_name else f"{text} after {signal_stop_text(first)}"
-            self._requests.append((_STOP, f"{code}_stop", said, ""))
-
-    def internal_error(self, part: str, exc: BaseException, action: str = ERROR_LAND) -> PartError | None:
-        """An exception from ``part`` of the flight, at the latest tick's time.
-
-        The first of each distinct error goes on ``/events`` with its traceback; repeats are
-        only counted. ``action``: ``ERROR_LAND`` lands (a supervised landing, even when the
-        trajectory's own landing is under way, so a broken reference or controller does not
-        decide where the drone sets down), ``ERROR_STOP`` stops the motors, ``ERROR_RECORD``
-        only records it (a detached observer, a log write). Returns the new error, or None for
-        a repeat. Called on the loop's thread only.
-        """
-        error = describe_error(part, exc)
-        if error.key in self._errors:
-            self.error_repeats += 1
-            return None
-        self._errors[error.key] = error
-        now = self._now
-        what = {_LAND: "landing", _STOP: "stopping the motors"}.get(action, "the flight goes on")
-        self.events.append(f"{now:.3f} s error: {error.line}")
-        self._log.write("/events", now, {"level": "error", "text": f"{error.line}: {what}", "source": "internal_error",
-                                         "part": part, "traceback": error.traceback})
-        if action == _STOP:
-            self._escalate(now, _STOP, "internal_error", f"internal error in {part}", error.line)
-        elif action == _LAND:
-            if self._state is State.LAND and self._landing_mode == "nominal":
-                self._landing_mode, self._landing = "supervised", None
-            self._escalate(now, _LAND, "internal_error", f"internal error in {part}", error.line)
-        return error
-
-    @property
-    def errors(self) -> tuple[PartError, ...]:
-        """The distinct internal errors so far, oldest first."""
-        return tuple(self._errors.values())
 
     # --- the gate -------------------------------------------------------------------------------
 
@@ -515,38 +397,6 @@ class Supervisor:
             return OFF, ref, "cutoff"
         return FLY, landing.sample(ref.t), ""
 
-    def _poll(self, now: float, slot: str) -> None:
-        """One slow input (``slot``): battery, link or the /safety status message."""
-        flying = self._state in _FLYING and self._enabled
-        cfg = self.config
-        if slot == "status":
-            self._log_status(now)
-        elif slot == "battery":
-            volts = self._battery_now()
-            if volts is not None:
-                filtered = self._battery.update(now, volts)
-                if flying and filtered < cfg.battery_land_v:
-                    self._escalate(now, _LAND, "battery_low",
-                                   f"battery {filtered:.2f} V below {cfg.battery_land_v:g} V")
-        elif self._link_source is not None:
-            link = self._link_source(now)
-            self._link_silence = link.silence_s
-            if flying:
-                if link.lost:
-                    self._escalate(now, _STOP, "link_lost", f"radio link lost ({link.lost})",
-                                   "nothing reaches the drone: its watchdog levels it at 0.5 s and stops "
-                                   "the motors at 2 s")
-                elif link.silence_s > cfg.link_silence_s:
-                    self._escalate(now, _LAND, "link_silent", f"no answer on the radio link for {link.silence_s:.2f} s")
-                elif link.latency_s > cfg.link_max_latency_s:
-                    self._escalate(now, _LAND, "link_latency", f"radio latency {link.latency_s * 1e3:.0f} ms")
-
-    def _battery_now(self) -> float | None:
-        if self._battery_source is None:
-            return None
-        volts = self._battery_source()
-        return None if volts is None or not math.isfinite(volts) else float(volts)
-
     def _escalate(self, now: float, kind: str, cause: str, text: str, note: str = "") -> None:
         """Land or stop for ``cause`` (once per cause and kind), as far as the state allows.
 
@@ -602,15 +452,3 @@ class Supervisor:
     def _event(self, now: float, level: str, text: str, **extra: Any) -> None:
         self.events.append(f"{now:.3f} s {level}: {text}")
         self._log.write("/events", now, {"level": level, "text": text, "source": "supervisor", **extra})
-
-    def _log_status(self, now: float) -> None:
-        self._log.write("/safety", now, {
-            "state": self._state.value,
-            "reason": self._cause,
-            "pose_age_s": now - self._pose_t,
-            "fence_margin_m": self._fence_margin,
-            "tracking_error_m": self._track_err,
-            "battery_v": self._battery.value,
-            "link_silence_s": self._link_silence,
-            "fallback_ticks": self._fallback_run,
-        })
