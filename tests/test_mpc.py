@@ -9,7 +9,7 @@ import pytest
 
 from cfknode.app.config import load_config
 from cfknode.flight import mpc as mpc_module
-from cfknode.flight import mpc_codegen
+from cfknode.flight import mpc_codegen, mpc_problem
 from cfknode.flight.mpc import (
     ResidualLinearisation,
     TranslationalMpc,
@@ -261,7 +261,7 @@ def _starved_options(original, starve_osqp: bool):
 
 def test_failed_qp_is_rescued_by_osqp(monkeypatch, ipopt):
     """qrqp stopping early is caught by the KKT check; the OSQP rescue gives the right answer."""
-    monkeypatch.setattr(mpc_module, "_qp_options", _starved_options(mpc_module._qp_options, starve_osqp=False))
+    monkeypatch.setattr(mpc_problem, "_qp_options", _starved_options(mpc_problem._qp_options, starve_osqp=False))
     c = _cfg()
     mpc = TranslationalMpc(c.controller, c.vehicle)
     x0 = np.array([3.0, 0.0, -2.0, 0.0, 0.0, 0.0])
@@ -272,7 +272,7 @@ def test_failed_qp_is_rescued_by_osqp(monkeypatch, ipopt):
 
 def test_failed_qp_gives_not_ok(monkeypatch):
     """When the rescue fails too, the failure is reported, never raised, and the next tick recovers."""
-    monkeypatch.setattr(mpc_module, "_qp_options", _starved_options(mpc_module._qp_options, starve_osqp=True))
+    monkeypatch.setattr(mpc_problem, "_qp_options", _starved_options(mpc_problem._qp_options, starve_osqp=True))
     c = _cfg(horizon=5)
     mpc = TranslationalMpc(c.controller, c.vehicle)
     sol = mpc.solve(np.array([3.0, 0.0, -2.0, 0.0, 0.0, 0.0]), _hover_ref(5))
