@@ -129,11 +129,19 @@ async def fly(parts: FlightParts) -> FlightRecord:
                     parts.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                                     "stamp": pose.t})
             est = parts.estimator.predict(now, acc_prev)
-            action, ref, source = sup.plan(now, est, traj.sample(controller.preview_times(now)))
+            ref_in = traj.sample(controller.preview_times(now))
+            action, ref, source = sup.plan(now, est, ref_in)
 
             solve_s, ok, status = 0.0, False, ""
             if action is FLY:
-                command = controller.step(now, est, ref, pose_fresh=pose_fresh, phase=sup.state.value)
+                plan_est, plan_ref, delay = est, ref, parts.estimator.command_path.delay
+                if delay > 0.0:
+                    # Plan from where the vehicle will be when this command acts (flight/latency.py);
+                    # a reference the supervisor replaced (landing, fence) is flown as it is.
+                    plan_est = parts.estimator.command_path.ahead(est)
+                    if ref is ref_in:
+                        plan_ref = traj.sample(controller.preview_times(now + delay))
+                command = controller.step(now, plan_est, plan_ref, pose_fresh=pose_fresh, phase=sup.state.value)
                 if controller.adaptation is not None:
                     parts.log.write("/adaptation", now, controller.adaptation.log())
                 ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
@@ -150,6 +158,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 if source == "no_state":
                     rec.no_state_ticks += 1
             sp = sup.send(now, sp)
+            parts.estimator.command_path.note(now, acc_prev)
             compute = time.perf_counter() - start
 
             missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
