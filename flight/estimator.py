@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cfknode.flight.latency import CommandDelayPredictor
 from cfknode.flight.settings import EstimatorConfig
 from cfknode.mocap.source import Pose
 
@@ -50,6 +51,8 @@ class VelocityEstimator:
         self._q_acc = config.process_accel_std**2
         self._r = config.position_std**2
         self._latency = config.latency
+        # The command path's delay: ``ahead`` predicts across it (flight/latency.py).
+        self.command_path = CommandDelayPredictor(config.command_delay)
         # History rows 0..n-1: row 0 is the last fused frame (the anchor), later rows
         # the predictions made since. acc[i] is the input over (t[i-1], t[i]].
         self._t = np.zeros(_HISTORY)
@@ -75,6 +78,7 @@ class VelocityEstimator:
         self._n = 0
         self._last_pose_t = -math.inf
         self._quat = None
+        self.command_path.reset()
 
     def update(self, pose: Pose | None) -> None:
         """Fuse a frame; a frame already seen (same ``t``) or older is ignored."""

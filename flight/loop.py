@@ -198,7 +198,15 @@ async def fly(parts: FlightParts) -> FlightRecord:
                     command = None
                     if not controller_failed:
                         try:
-                            command = controller.step(now, est, ref, pose_fresh=fresh, phase=sup.state.value)
+                            plan_est, plan_ref, delay = est, ref, parts.estimator.command_path.delay
+                            if delay > 0.0:
+                                # Plan from where the vehicle will be when this command acts (flight/latency.py);
+                                # a reference the supervisor replaced (landing, fence) is flown as it is.
+                                plan_est = parts.estimator.command_path.ahead(est)
+                                if ref is samples and held is None:
+                                    plan_ref = traj.sample(controller.preview_times(now + delay))
+                            command = controller.step(now, plan_est, plan_ref, pose_fresh=fresh,
+                                                      phase=sup.state.value)
                             if controller.adaptation is not None:
                                 log.write("/adaptation", now, controller.adaptation.log())
                         except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
@@ -228,6 +236,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                         rec.no_state_ticks += 1
                 try:
                     sp = sup.send(now, sp)
+                    parts.estimator.command_path.note(now, acc_prev)
                 except Exception as exc:  # noqa: BLE001
                     fault("the supervisor", exc, ERROR_STOP)
                     break

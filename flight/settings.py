@@ -54,6 +54,7 @@ class EstimatorConfig:
     process_accel_std: float
     position_std: float
     latency: float
+    command_delay: float = 0.0  # s from a sent command to its acceleration; the plan starts that far ahead
 
 
 @dataclass(frozen=True)

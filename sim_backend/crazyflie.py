@@ -16,6 +16,7 @@ import numpy as np
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.battery import Battery
 from cfknode.sim_backend.firmware import Firmware
+from cfknode.sim_backend.plant import thrust_scale_at
 from cfknode.sim_backend.scenario import mass_at
 from cfknode.sim_backend.settings import SimConfig
 from cfknode.sim_backend.vehicle import Vehicle
@@ -39,7 +40,8 @@ class SimCrazyflie:
         self.lock = threading.RLock()
         self.rng = np.random.default_rng(sim.seed)
         self.vehicle = Vehicle(vehicle, sim)
-        self.firmware = Firmware(vehicle, self.dt, lock=self.lock)
+        self.firmware = Firmware(vehicle, self.dt, lock=self.lock, attitude_gain=sim.attitude_gain,
+                                 yaw_gain=sim.yaw_gain)
         self.battery = Battery(sim.battery_voltage)
         self._nominal_mass = vehicle.mass
         self._mass_changes = sim.mass_changes
@@ -116,11 +118,14 @@ class SimCrazyflie:
         vehicle = self.vehicle
         firmware = self.firmware
         battery = self.battery
+        sag = self.sim_config.battery_sag_per_s > 0.0
         while self._k * dt < t_target - 1e-12:
             t = self._k * dt
             x = vehicle.state_list()
             motors = firmware.step(t, x)
             self._mass = mass = mass_at(t, self._nominal_mass, self._mass_changes)
+            if sag:
+                vehicle.set_thrust_scale(thrust_scale_at(t, self.sim_config))
             vehicle.step(motors, mass)
             self._k += 1
             battery.update(vehicle.state_list()[13:], dt)

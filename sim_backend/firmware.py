@@ -204,8 +204,15 @@ class Firmware:
     driver thread while another thread steps; pass the simulator's lock.
     """
 
-    def __init__(self, vehicle: VehicleConfig, dt: float, lock: threading.RLock | None = None) -> None:
+    def __init__(
+        self, vehicle: VehicleConfig, dt: float, lock: threading.RLock | None = None, *,
+        attitude_gain: float = 1.0, yaw_gain: float = 1.0,
+    ) -> None:
+        """``attitude_gain`` / ``yaw_gain``: the roll/pitch angle and yaw rate the attitude loop
+        tracks per commanded unit (a plant that answers more or less than asked; 1 = as asked)."""
         self.dt = dt
+        self._attitude_gain = attitude_gain
+        self._yaw_gain = yaw_gain
         self._lock = lock if lock is not None else threading.RLock()
         self._thrust_max = vehicle.thrust_max_per_motor
         self._thrust_clamp = int(vehicle.thrust_cmd_clamp)
@@ -479,15 +486,16 @@ class Firmware:
             self._reset_pids(roll, pitch, yaw)
             self._prev_attitude_mode = sp.attitude_mode
         if sp.attitude_mode:
-            self._yaw_desired = cap_angle(self._yaw_desired + sp.yaw_rate * self.dt)
+            self._yaw_desired = cap_angle(self._yaw_desired + sp.yaw_rate * self._yaw_gain * self.dt)
         thrust = sp.thrust
         if thrust == 0:
             self.control_outputs = (0, 0, 0)
             self._reset_pids(roll, pitch, yaw)
             self._yaw_desired = yaw
             return 0
-        roll_rate_des = self._pid_roll.update(sp.roll, roll)
-        pitch_rate_des = self._pid_pitch.update(sp.pitch, pitch)
+        gain = self._attitude_gain  # x * 1.0 == x exactly: the default is the firmware as it is
+        roll_rate_des = self._pid_roll.update(sp.roll * gain, roll)
+        pitch_rate_des = self._pid_pitch.update(sp.pitch * gain, pitch)
         yaw_rate_des = self._pid_yaw.update(self._yaw_desired, yaw)
         # The legacy pitch axis is flipped, so is its gyro (controller_pid passes -gyro.y).
         roll_out = _saturate_int16(self._pid_roll_rate.update(roll_rate_des, gyro_x))

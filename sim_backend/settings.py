@@ -28,6 +28,13 @@ class SimConfig:
     mass_changes: tuple[MassChange, ...]
     wind: Vec3
     drag: Vec3
+    # Plants the controller was not tuned on (it keeps believing ``vehicle:``); the defaults
+    # reproduce the vehicle config exactly. Ranges and sources: cfknode/config/default.yaml.
+    motor_time_constant: float | None = None  # s, the plant's motor lag; None = vehicle.motor_time_constant
+    thrust_map_scale: float = 1.0  # true force per command / the vehicle config's
+    battery_sag_per_s: float = 0.0  # fraction of thrust_map_scale lost per second of sim time
+    attitude_gain: float = 1.0  # roll/pitch the attitude loop tracks / the commanded angle
+    yaw_gain: float = 1.0  # yaw rate the attitude loop tracks / the commanded rate
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ import numpy as np
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.settings import SimConfig
 from cfknode.models.quadrotor import Backend, rigid_body_rhs
+from cfknode.sim_backend.plant import plant_motor_time_constant
 from cfknode.sim_backend.scenario import drag_force
 
 # Lists of Python floats in, lists out: the cheapest way to evaluate the shared model equations
@@ -77,17 +78,18 @@ class Vehicle:
         if sim.initial_position[2] < 0.0:
             raise ValueError(f"sim.initial_position z must be >= 0 (the ground), got {sim.initial_position[2]}")
         self.dt = sim.dt
-        self._thrust_max = vehicle.thrust_max_per_motor
+        self._vehicle_thrust_max = vehicle.thrust_max_per_motor
+        # The plant's thrust map may differ from the config the firmware and controller believe.
+        self._thrust_max = vehicle.thrust_max_per_motor * sim.thrust_map_scale
         self._inertia = tuple(vehicle.inertia)
         self._gravity = vehicle.gravity
         self._half_arm = vehicle.arm_length / math.sqrt(2.0)
         self._kappa = vehicle.thrust_to_torque
-        self._tau = vehicle.motor_time_constant
+        self._tau = plant_motor_time_constant(vehicle, sim)
         if 0.0 < self._tau < 0.5 * sim.dt:
             # RK4's decay factor for the lag stops being monotone past dt/tau ~ 2 (unstable at 2.8).
-            raise ValueError(
-                f"vehicle.motor_time_constant {self._tau} s is below sim.dt/2; use 0 for no motor lag"
-            )
+            key = "vehicle" if sim.motor_time_constant is None else "sim"
+            raise ValueError(f"{key}.motor_time_constant {self._tau} s is below sim.dt/2; use 0 for no motor lag")
         self._drag = tuple(sim.drag)
         self._wind = tuple(sim.wind)
         self._has_drag = any(c != 0.0 for c in self._drag)
@@ -114,6 +116,15 @@ class Vehicle:
     def motor_forces(self) -> np.ndarray:
         """Current motor forces [N] (m1..m4), a fresh array."""
         return np.array(self._x[13:])
+
+    @property
+    def thrust_scale(self) -> float:
+        """True force per command / the vehicle config's, now."""
+        return self._thrust_max / self._vehicle_thrust_max
+
+    def set_thrust_scale(self, scale: float) -> None:
+        """Change the thrust map (a sagging battery), from the next step on."""
+        self._thrust_max = self._vehicle_thrust_max * scale
 
     def state_list(self) -> list[float]:
         """The full 17-state as a list (hot path: no numpy). Do not mutate."""

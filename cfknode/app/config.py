@@ -138,6 +138,8 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
     ("controller.adaptation_settings.stale_pose_s", lambda v: v > 0, "> 0 s"),
     ("controller.adaptation_settings.rebase_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
+    ("estimator.latency", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
+    ("estimator.command_delay", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
     ("trajectory.radius", lambda v: v > 0, "> 0"),
     ("trajectory.speed", lambda v: v > 0, "> 0"),
     ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),
@@ -149,6 +151,11 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("sim.dt", lambda v: 0 < v <= 0.01, "in (0, 0.01] s"),
     ("sim.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
     ("sim.mocap_dropout_prob", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("sim.motor_time_constant", lambda v: v is None or 0 <= v <= 0.3, "null or in [0, 0.3] s"),
+    ("sim.thrust_map_scale", lambda v: 0.5 <= v <= 1.5, "in [0.5, 1.5]"),
+    ("sim.battery_sag_per_s", lambda v: 0 <= v <= 0.05, "in [0, 0.05] per s"),
+    ("sim.attitude_gain", lambda v: 0.5 <= v <= 1.5, "in [0.5, 1.5]"),
+    ("sim.yaw_gain", lambda v: 0.25 <= v <= 3.0, "in [0.25, 3]"),
     ("knode.queue_size", lambda v: 1 <= v <= 10, "in 1..10"),
     ("knode.hidden", lambda v: len(v) >= 1 and all(0 < h <= 1024 for h in v), "a non-empty list of widths in 1..1024"),
     ("training.epochs", lambda v: v >= 1, ">= 1"),
@@ -338,6 +345,10 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
             raise ConfigError(f"config key '{key}' must be a string, got {value!r}")
         return value
     if isinstance(tp, types.UnionType) or origin is typing.Union:
+        args = tuple(a for a in typing.get_args(tp) if a is not type(None))
+        if len(args) == 1 and len(typing.get_args(tp)) == 2:
+            # ``X | None``: YAML null means "not set" (e.g. the vehicle's value applies).
+            return None if value is None else _coerce(args[0], value, key)
         raise TypeError(f"unsupported union in schema at {key}")
     raise TypeError(f"unsupported schema type {tp!r} at {key}")
 

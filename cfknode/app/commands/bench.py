@@ -137,12 +137,27 @@ def _run_online(args: argparse.Namespace) -> int:
     return run_online(args, _version())
 
 
+def _add_robustness_arguments(p: argparse.ArgumentParser) -> None:
+    from cfknode.app.bench.robustness import add_robustness_arguments
+
+    add_robustness_arguments(p)
+
+
+def _run_robustness(args: argparse.Namespace) -> int:
+    from cfknode.app.bench.robustness import run_robustness
+
+    return run_robustness(args, _version())
+
+
 BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
     "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
                _run_timing),
     "online": ("the online-learning acceptance protocol: online vs nominal and offline KNODE-MPC under the paper's mass changes",
                _add_online_arguments, _run_online),
+    "robustness": ("every controller on plants it was not tuned on: motor lag, thrust-to-weight, attitude response, "
+                   "thrust map, mocap latency and noise, wind, gusts, mass steps, battery sag",
+                   _add_robustness_arguments, _run_robustness),
 }
 
 
