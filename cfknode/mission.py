@@ -99,6 +99,7 @@ class Session:
     fault_observers: Callable[[ModelSlot | None], list[TickObserver]] = lambda model: []
     events: tuple[dict[str, Any], ...] = ()  # logged before take-off (pre-flight checks)
     after_handback: Callable[[], dict[str, Any]] = dict  # summary extras once the drone is handed back
+    true_mass: Callable[[], float] | None = None  # the simulator's true mass (the oracle reads it); None on hardware
 
 
 def run_flight(
@@ -123,6 +124,8 @@ def run_flight(
         check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
         flight_cfg, session = cfg, _sim_session(cfg)
     else:
+        if cfg.controller.adaptation == "oracle":
+            raise ConfigError("controller.adaptation oracle reads the simulator's true mass: simulation only (backend sim)")
         from cfknode.hardware import HARDWARE_ERRORS, flight_config, robot_for
 
         try:
@@ -207,7 +210,7 @@ def _fly_session(
             # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
             deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
             controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_controller(mpc),
-                                    deadline_s=deadline, ground_z=ground_z)
+                                    deadline_s=deadline, ground_z=ground_z, true_mass=sess.true_mass)
             if online is not None:
                 controller.observers.append(online)
             parts = FlightParts(
@@ -244,6 +247,7 @@ def _fly_session(
                 window=trajectory.pattern_window,
                 wall_time=record.wall_time,
                 log_path=str(flight_log.path),
+                steps=[(m.t, m.factor) for m in cfg.sim.mass_changes] if cfg.backend == "sim" else (),
                 extra={
                     "outcome": outcome.message,
                     "safety_state": outcome.state.value,
@@ -353,6 +357,7 @@ def _sim_session(cfg: Config) -> Iterator[Session]:
             radio=radio,
             start_position=np.asarray(cfg.sim.initial_position, dtype=float),
             truth=lambda: sim.state,
+            true_mass=lambda: sim.mass,
             battery_voltage=lambda: sim.battery_voltage,
             link_status=link,
             wrap_controller=lambda mpc: faults.controller(mpc, clock.now),
