@@ -80,8 +80,8 @@ def peak_text(steps: Sequence[Mapping[str, Any]]) -> str:
 
 def recovery_legend() -> str:
     return (f"Time to recover: s from each mass step until the position error is under {100 * RECOVERY_THRESHOLD_M:g} cm "
-            "and stays there until the next step or the pattern's end (never: it does not); peak: the largest error "
-            "after the step, m.")
+            "and stays there until the next step, or until one MPC horizon (1 s) before the pattern's end, where the "
+            "MPC already brakes for the stop (never: it does not); peak: the largest error in that interval, m.")
 
 
 def wins(cells: Iterable[Mapping[str, float]], exclude: tuple[str, ...] = (ORACLE,)) -> dict[str, int]:

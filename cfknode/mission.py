@@ -248,6 +248,8 @@ def _fly_session(
                 wall_time=record.wall_time,
                 log_path=str(flight_log.path),
                 steps=[(m.t, m.factor) for m in cfg.sim.mass_changes] if cfg.backend == "sim" else (),
+                # The same margin for every controller, so the rows compare: the MPC's preview horizon.
+                recovery_margin_s=cfg.controller.horizon * cfg.controller.dt,
                 extra={
                     "outcome": outcome.message,
                     "safety_state": outcome.state.value,

@@ -120,6 +120,7 @@ def compute_summary(
     duration: float | None = None,
     extra: Mapping[str, Any] | None = None,
     steps: Sequence[tuple[float, float]] = (),
+    recovery_margin_s: float = 0.0,
 ) -> FlightSummary:
     """Summarise a flight from per-tick arrays (pure).
 
@@ -128,7 +129,8 @@ def compute_summary(
     solve time means no solve ran that tick). ``window`` selects t0 <= t <= t1 for the
     pattern metrics. ``duration`` defaults to the span of ``t``. ``steps``: (time, mass factor) of
     the simulator's mass changes; each gets its time to recover and peak error, judged until the
-    next step or the pattern's end.
+    next step or ``recovery_margin_s`` before the pattern's end (an MPC brakes for the pattern's
+    end one preview horizon early, which is not the step's doing).
     """
     t = np.asarray(t, dtype=float).reshape(-1)
     p = np.asarray(p, dtype=float).reshape(-1, 3)
@@ -153,7 +155,7 @@ def compute_summary(
     if duration is None:
         duration = float(t[-1] - t[0]) if len(t) else 0.0
     err = np.linalg.norm(p - p_ref, axis=1) if len(t) else np.zeros(0)
-    recoveries = tuple(r.to_dict() for r in step_recoveries(t, err, steps, t1))
+    recoveries = tuple(r.to_dict() for r in step_recoveries(t, err, steps, t1 - recovery_margin_s))
     return FlightSummary(
         window=(t0, t1),
         window_samples=pattern.samples,

@@ -63,5 +63,10 @@ def test_the_flight_summary_reports_recovery_per_step_and_round_trips() -> None:
     r = s.recovery[0]
     assert r["factor"] == 0.5 and r["time_to_recover_s"] == pytest.approx(math.log(0.1 / 0.03) / 2, abs=0.011)
     assert r["peak_error_m"] == pytest.approx(0.1)
+    late = p.copy()
+    late[T > 8.5, 0] = 0.05  # an excursion in the last second of the pattern: outside a 1 s margin only
+    kept = compute_summary(T, late, p_ref, np.zeros(n), np.zeros(n), np.zeros(n, bool), (1.0, 9.0), 1.0,
+                           steps=[(2.0, 0.5)], recovery_margin_s=1.0)
+    assert kept.recovery[0]["time_to_recover_s"] == pytest.approx(r["time_to_recover_s"])
     back = summary_from_dict(s.to_dict())
     assert back.recovery[0]["time_to_recover_s"] == pytest.approx(r["time_to_recover_s"])
