@@ -145,7 +145,7 @@ BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callabl
     "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
     "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
                _run_timing),
-    "online": ("issue 4's protocol: online vs nominal and offline KNODE-MPC under the paper's mass changes",
+    "online": ("the online-learning protocol: online vs the other controllers and the oracle under the paper's mass changes",
                _add_online_arguments, _run_online),
 }
 
