@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -92,6 +92,8 @@ class Controller:
     the residual's constant, its mass estimate the thrust cone and the Mellinger layer.
     ``ground_z``: the floor's height, near which the layer does not learn (None: the first
     state's height, as for a flight that takes off from where it starts).
+    ``true_mass``: the simulator's true mass [kg], read every tick by ``adaptation`` "oracle"
+    (``adaptation_oracle.py``), which needs it.
     """
 
     def __init__(
@@ -103,6 +105,7 @@ class Controller:
         solver: Solver | None = None,
         deadline_s: float | None = None,
         ground_z: float | None = None,
+        true_mass: Callable[[], float] | None = None,
     ) -> None:
         self.settings = settings
         self.vehicle = vehicle
@@ -116,7 +119,15 @@ class Controller:
         self.gains = GeometricGains.from_config(settings, vehicle)
         self.offsets = settings.dt * np.arange(settings.horizon + 1)
         self.observers: list[TickObserver] = []
-        self.adaptation = LoopAdaptation(settings, vehicle, ground_z) if settings.adaptation != "none" else None
+        self.adaptation: Any = None
+        if settings.adaptation == "oracle":
+            if true_mass is None:
+                raise ValueError("controller.adaptation oracle needs the true mass: it is simulation only")
+            from cfknode.flight.adaptation_oracle import OracleAdaptation
+
+            self.adaptation = OracleAdaptation(settings, vehicle, true_mass)
+        elif settings.adaptation != "none":
+            self.adaptation = LoopAdaptation(settings, vehicle, ground_z)
         self._x_pred: np.ndarray | None = None
         self._u_pred: np.ndarray | None = None
         self._pending: TickInfo | None = None

@@ -27,6 +27,11 @@ request was sent (its window's end) plus the observed training round trip. The s
 paced only while the trainer works (a round, or a restart after a fault), and only when sim
 time would otherwise run ahead of the wall time the trainer has had (the loop blocks on the
 result pipe until the wall catches up); the rest of the flight runs at full lockstep speed.
+That is the ``wall`` latency policy. With ``cpu`` or ``fixed`` (``online_latency.py``) the
+delay comes from the trainer's report instead and the flight is never paced: a result counts
+as received at exactly send time + delay in flight time, and the loop blocks on the trainer
+only when flight time reaches the earliest moment the result could apply. The flight then
+depends only on the trainer's outputs, not on how loaded the machine is.
 ``paper_lockstep`` instead waits for every model and applies it at once, as the paper's code
 does (reproduction only).
 """
@@ -44,6 +49,7 @@ import numpy as np
 from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, MonitorVerdict
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.online_gate import GateLimits, GateVerdict, gate_pairs, gate_steps
+from cfknode.flight.online_latency import LatencyPolicy, applied_latency
 from cfknode.flight.online_windows import TickLike, WindowRecorder
 from cfknode.flight.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
@@ -78,6 +84,7 @@ class LearnerSettings:
     queue_size: int  # knode.queue_size
     monitor: MonitorSettings | None = None  # drop a flying model the world changed under (None: never)
     ground_z: float | None = None  # the floor's height: ticks near it are not learned from (None: no floor)
+    latency: LatencyPolicy = LatencyPolicy()  # lockstep only: the delay a model is applied with (online_latency.py)
 
 
 @dataclass(frozen=True)
@@ -88,7 +95,7 @@ class RoundRecord:
     version: int
     window: tuple[float, float]
     sent_t: float  # flight time the request was sent
-    latency_s: float  # wall s from send to result (the honest delay)
+    latency_s: float  # s from send to the earliest swap: the wall round trip, or the latency policy's delay
     train_wall_s: float  # the trainer's own wall time for the round
     train_cpu_s: float
     loss: float
@@ -218,6 +225,7 @@ class OnlineLearner:
         self._held: _Held | None = None
         self._gating: _Gating | None = None
         self._watch: _Watch | None = None
+        self._arrived: TrainOutcome | None = None  # cpu/fixed latency: a result not yet due in flight time
         self.failed = False  # restarts exhausted: learning stopped, flight goes on
         self.ending = False  # the supervisor is landing or has ended the flight: no trainer restarts
         self._install_work_s = 0.0  # wall time of the last on_tick when it folded, gated or swapped a model
@@ -259,6 +267,9 @@ class OnlineLearner:
     # --- honest mode -------------------------------------------------------------------------
 
     def _service(self, t: float) -> None:
+        if self.s.lockstep and self.s.latency.sim_time:
+            self._service_sim_time(t)
+            return
         timeout = 0.0
         pace = self._pace_from
         if pace is not None and self.s.lockstep and self.client.state in ("busy", "starting"):
@@ -280,7 +291,46 @@ class OnlineLearner:
             self._start_gate(t)
         self._maybe_send(t)
 
+    def _service_sim_time(self, t: float) -> None:
+        """cpu/fixed latency: the trainer's result is taken at send + delay in flight time, whatever the wall did."""
+        waited = self._wall()
+        while self.client.state == "starting":  # a restart: the flight waits for it, so the wall does not leak in
+            event = self.client.poll(1.0)
+            if event is not None:
+                self._on_event(event, t)
+        nxt = self._next_tick_time(t)
+        out = self._out
+        if out is not None and self._arrived is None and self.client.state == "busy":
+            # Block only once the next tick could fly the result: before that no answer can change the flight.
+            must_wait = nxt >= out.sent_t + self.s.latency.floor_s - 1e-9
+            while self._out is out and self._arrived is None and self.client.state == "busy":
+                event = self.client.poll(self.client.timeout if must_wait else 0.0)
+                if isinstance(event, TrainOutcome) and event.round == out.request.round:
+                    self._arrived = event
+                elif event is not None:
+                    self._on_event(event, t)  # a fault, a stale result, a ready note: as they come
+                elif not must_wait:
+                    break
+        self.stats.pace_wait_s += self._wall() - waited
+        if self._arrived is not None and self._out is not None:
+            due = self._out.sent_t + self._delay(self._arrived)
+            if nxt >= due - 1e-9:
+                event, self._arrived = self._arrived, None
+                self._on_event(event, t)
+        if self._gating is not None:
+            self._step_gate(t)
+        elif self._held is not None:
+            self._start_gate(t)
+        self._maybe_send(t)
+
+    def _delay(self, event: TrainOutcome) -> float:
+        out = self._out
+        wall = self._wall() - out.sent_wall if out is not None else math.nan
+        return applied_latency(self.s.latency, event.cpu_s, wall)
+
     def _maybe_send(self, t: float) -> None:
+        if self._arrived is not None:
+            return  # the trainer is idle, but in flight time its result is still on the way
         if self.client.state != "idle" or self._held is not None or self._gating is not None or self._pending is None:
             return
         window, self._pending = self._pending, None
@@ -310,7 +360,9 @@ class OnlineLearner:
             out, self._out = self._out, None
             if out is None or out.request.round != event.round:
                 return  # a result from before a restart: nothing waits for it
-            latency = self._wall() - out.sent_wall
+            sim_time = self.s.lockstep and self.s.latency.sim_time and not self.s.paper_lockstep
+            latency = applied_latency(self.s.latency, event.cpu_s, self._wall() - out.sent_wall) if sim_time \
+                else self._wall() - out.sent_wall
             self.stats.latency_s.append(latency)
             self.stats.train_wall_s.append(event.wall_s)
             self._log_training(t, event, latency)
@@ -331,6 +383,7 @@ class OnlineLearner:
 
     def _on_fault(self, fault: TrainerFault, t: float) -> None:
         out, self._out = self._out, None
+        self._arrived = None
         version = out.request.version if out is not None else self._flying.version
         if fault.kind == "hang":
             self.stats.hangs += 1
@@ -593,11 +646,13 @@ class OnlineLearner:
         """What the flight summary reports about online learning (flat, JSON-safe)."""
         s = self.stats
         mode = "paper-lockstep (reproduction only: the simulation waits for every model)" if self.s.paper_lockstep \
-            else ("honest latency (lockstep, paced while training)" if self.s.lockstep else "real time")
+            else (f"honest latency (lockstep, {self.s.latency.describe()})" if self.s.lockstep else "real time")
         walls = np.asarray(s.train_wall_s)
         return {
             "online_mode": mode,
             "online_t_col_s": self.s.t_col,
+            "online_latency": (self.s.latency.mode if self.s.lockstep and not self.s.paper_lockstep
+                               else ("paper" if self.s.paper_lockstep else "wall")),
             "models_trained": s.rounds_trained,
             "models_accepted": s.accepted,
             "models_rejected": s.rejected,

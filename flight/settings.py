@@ -45,7 +45,7 @@ class ControllerConfig:
     max_yaw_rate_deg: float
     geometric_kp: Vec3
     geometric_kd: Vec3
-    adaptation: Literal["none", "l1", "dob"]
+    adaptation: Literal["none", "l1", "dob", "oracle"]
     adaptation_settings: AdaptationTuning
 
 

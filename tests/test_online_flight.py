@@ -65,7 +65,8 @@ def _config(tmp_path, **overrides: Any) -> Config:
 
 @pytest.fixture(scope="module")
 def online(tmp_path_factory) -> Flight:
-    return fly_online(_config(tmp_path_factory.mktemp("online")))
+    # online.latency wall: this flight checks the realistic mode, paced by the trainer's wall time.
+    return fly_online(_config(tmp_path_factory.mktemp("online"), **{"online.latency": "wall"}))
 
 
 @pytest.fixture(scope="module")
@@ -215,6 +216,21 @@ def test_solver_failure_after_a_swap_rolls_back(tmp_path) -> None:
     assert flight.versions[k] == rollback.version != bad.version
     model_events = read_log(flight.summary.log_path).topic("/model")
     assert any(m["event"] == "rollback" and "fallbacks" in m["reason"] for m in model_events)
+
+
+def test_fixed_latency_takes_each_result_at_send_plus_the_delay_unpaced(tmp_path) -> None:
+    period = 1.0 / 400.0
+    cfg = _config(tmp_path, **{"online.latency": "fixed", "online.fixed_latency_s": 0.2, "trajectory.duration": 3.0})
+    flight = fly_online(cfg, "fixed")
+    s = flight.summary.extra
+    assert s["online_latency"] == "fixed" and "fixed 0.2 s" in s["online_mode"]
+    decided = [r for r in flight.learner.rounds if r.outcome in ("swap", "reject")]
+    assert len(decided) >= 2
+    for r in decided:
+        assert r.latency_s == 0.2
+        # Taken at the tick whose successor may fly it: exactly send + 0.2 in flight time, whatever the wall did.
+        assert r.sent_t + 0.2 - period - 1e-9 <= r.received_t <= r.sent_t + 0.2 + 1e-9, r
+    assert flight.summary.extra["fallback_ticks"] == 0
 
 
 def test_paper_lockstep_applies_each_model_at_its_window_end(tmp_path) -> None:

@@ -59,6 +59,9 @@ class OnlineConfig:
     monitor_every_ticks: int
     monitor_margin: float
     monitor_floor: float
+    latency: Literal["cpu", "fixed", "wall"]
+    fixed_latency_s: float
+    latency_quantum_s: float
     inject: FaultInjection
 
 
@@ -177,6 +180,8 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.monitor_every_ticks", lambda v: v >= 1, ">= 1"),
     ("online.monitor_margin", lambda v: v >= 1, ">= 1"),
     ("online.monitor_floor", lambda v: v >= 0, ">= 0 m/s^2"),
+    ("online.fixed_latency_s", lambda v: 0 <= v <= 60, "in [0, 60] s"),
+    ("online.latency_quantum_s", lambda v: 0 <= v <= 1, "in [0, 1] s"),
     ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
     ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
     ("safety.fence_margin", lambda v: v >= 0, ">= 0"),

@@ -29,6 +29,7 @@ from cfknode.flight.model_monitor import MonitorSettings
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.online import LearnerSettings, OnlineLearner
 from cfknode.flight.online_gate import GateLimits, operating_envelope
+from cfknode.flight.online_latency import LatencyPolicy
 from cfknode.flight.trainer_client import TrainerClient
 from cfknode.models.trainer_process import TrainerSettings
 
@@ -87,6 +88,7 @@ def learner_settings(
         monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
         if o.monitor else None,
         ground_z=ground_z,
+        latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
     )
 
 

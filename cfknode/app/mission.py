@@ -112,6 +112,8 @@ def run_flight(
         check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
         flight_cfg, session = cfg, SimulatorBackend.open(cfg)
     else:
+        if cfg.controller.adaptation == "oracle":
+            raise ConfigError("controller.adaptation oracle reads the simulator's true mass: simulation only (backend sim)")
         from cfknode.app.backends.crazyflie import HARDWARE_ERRORS, flight_config, robot_for
 
         try:
@@ -202,7 +204,7 @@ def _fly_session(
             # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
             deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
             controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_solver(mpc),
-                                    deadline_s=deadline, ground_z=ground_z)
+                                    deadline_s=deadline, ground_z=ground_z, true_mass=sess.true_mass)
             if online is not None:
                 controller.observers.append(online)
             parts = FlightParts(
@@ -240,6 +242,9 @@ def _fly_session(
                 window=trajectory.pattern_window,
                 wall_time=record.wall_time,
                 log_path=str(flight_log.path),
+                steps=[(m.t, m.factor) for m in cfg.sim.mass_changes] if cfg.backend == "sim" else (),
+                # The same margin for every controller, so the rows compare: the MPC's preview horizon.
+                recovery_margin_s=cfg.controller.horizon * cfg.controller.dt,
                 extra={
                     "outcome": outcome.message,
                     "safety_state": outcome.state.value,

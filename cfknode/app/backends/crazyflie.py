@@ -343,6 +343,9 @@ class CrazyflieBackend:
     def truth(self) -> np.ndarray | None:
         return self.hw.truth() if self.hw.truth is not None else None
 
+    def true_mass(self) -> float | None:
+        return None  # the mass a real vehicle carries is not known
+
     def battery_voltage(self) -> float | None:
         telemetry = self.hw.radio.telemetry()
         return telemetry.vbat if telemetry is not None else None

@@ -72,6 +72,9 @@ class SimulatorBackend:
     def truth(self) -> np.ndarray:
         return self.sim.state
 
+    def true_mass(self) -> float:
+        return self.sim.mass
+
     def battery_voltage(self) -> float | None:
         return self.sim.battery_voltage
 

@@ -5,7 +5,9 @@ MPC, Mellinger layer, the real cflib path into the simulated Crazyflie's firmwar
 noise), on the paper's circles and mass schedule (0.5x at 2 s, 1.33x at 5 s into the
 pattern), with the four controllers of Table 1: nominal MPC, offline KNODE-MPC (trained on a
 flight that saw only the first mass change, as the paper does), the geometric controller,
-and KNODE-MPC-Online. Only the safety limits are widened to the bench's circles (a 4 m
+and KNODE-MPC-Online; beside them MPC and KNODE-MPC-Online with the fast adaptation layer
+(dob), and the oracle: the same MPC told the true mass at every tick. Online learning flies
+with a reproducible latency by default (``--latency``, ``cfknode.app.bench.rows``). Only the safety limits are widened to the bench's circles (a 4 m
 circle is outside a lab fence); every run is seeded.
 """
 
@@ -16,13 +18,13 @@ import concurrent.futures as cf
 import json
 import multiprocessing
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 
 CELLS = tuple((r, v) for r in (2.0, 3.0, 4.0) for v in (0.8, 1.0, 1.2))
-CONTROLLERS = ("nominal", "offline", "geometric", "online")
+CONTROLLERS = ("geometric", "nominal", "offline", "online", "dob", "online_dob", "oracle")
 # Table 1 of the paper, as printed (radius-major), for the bench's comparison column.
 PAPER_ONLINE = dict(zip(CELLS, (0.0660, 0.1113, 0.1678, 0.0657, 0.1043, 0.1554, 0.0709, 0.1092, 0.1571)))
 PAPER_MPC = dict(zip(CELLS, (0.0904, 0.1280, 0.1705, 0.0949, 0.1371, 0.1861, 0.0967, 0.1412, 0.1937)))
@@ -37,6 +39,7 @@ class CellResult:
     outcome: dict[str, str]
     online: dict[str, Any]
     wall_s: float
+    recovery: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # per controller, per mass step
 
 
 def cell_overrides(radius: float, speed: float, duration: float, log_dir: str, seed: int) -> dict[str, Any]:
@@ -56,8 +59,9 @@ def cell_overrides(radius: float, speed: float, duration: float, log_dir: str, s
     }
 
 
-def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: str) -> CellResult:
-    """All four controllers on one cell (one process; flights in sequence)."""
+def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: str,
+             latency: dict[str, Any] | None = None) -> CellResult:
+    """Every controller on one cell (one process; flights in sequence); ``latency``: the online flights' overrides."""
     import time
 
     from cfknode.app.config import load_config
@@ -69,34 +73,46 @@ def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: s
     schedule = mass_schedule(base, (2.0 * duration / 8.0, 5.0 * duration / 8.0))
     name = f"r{radius:g}-v{speed:g}"
     model = train_offline_model(base, schedule, Path(out_dir), name)
-    mse, mse_z, outcome, online = {}, {}, {}, {}
+    mse, mse_z, outcome, online, recovery = {}, {}, {}, {}, {}
     for kind in CONTROLLERS:
-        overrides = {**base, "sim.mass_changes": list(schedule.both), **CONTROLLER_OVERRIDES[kind](model)}
+        overrides = {**base, "sim.mass_changes": list(schedule.both), **(latency or {}),
+                     **CONTROLLER_OVERRIDES[kind](model)}
         res = run_flight(load_config(overrides=overrides), name_hint=f"{name}-{kind}")
         mse[kind], mse_z[kind], outcome[kind] = res.summary.mse, res.summary.mse_z, res.outcome.message
+        recovery[kind] = [dict(r) for r in res.summary.recovery]
         if kind == "online":
             online = {k: v for k, v in res.summary.extra.items() if k.startswith(("models_", "swap_", "train_wall"))}
             online["speed_factor"] = res.summary.speed_factor
-    return CellResult(radius, speed, mse, mse_z, outcome, online, time.perf_counter() - start)
+    return CellResult(radius, speed, mse, mse_z, outcome, online, time.perf_counter() - start, recovery)
 
 
-def markdown(results: list[CellResult], command: str, version: str) -> str:
+def markdown(results: list[CellResult], command: str, version: str, latency_note: str = "") -> str:
+    from cfknode.app.bench.rows import LABELS, peak_text, recovery_legend, recovery_text, summary_lines
+
     lines = [
         "## Hierarchical mode (the hardware path)",
         "",
         f"`{command}`, cfknode {version}. MSE in m^2 on the pattern (mean over the axes), mass 0.5x at 2 s "
-        "and 1.33x at 5 s into an 8 s circle, 29 g Crazyflie 2.1 (thrust/weight 1.5 at the 60000 clamp).",
+        "and 1.33x at 5 s into an 8 s circle, 29 g Crazyflie 2.1 (thrust/weight 1.5 at the 60000 clamp). "
+        + latency_note,
         "",
-        "| r [m] | v [m/s] | MPC | KNODE-MPC (offline) | geometric | KNODE-MPC-Online | lowest | paper Online | paper MPC |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| r [m] | v [m/s] | " + " | ".join(LABELS[k] for k in CONTROLLERS) + " | lowest | paper Online | paper MPC |",
+        "|---|---|" + "---|" * (len(CONTROLLERS) + 3),
     ]
     for r in results:
         best = min(r.mse, key=r.mse.get)
-        cells = [f"**{r.mse[k]:.4f}**" if k == best else f"{r.mse[k]:.4f}" for k in CONTROLLERS]
+        cells = [f"**{r.mse[k]:.4f}**" if k == best else f"{r.mse[k]:.4f}" if k in r.mse else "-" for k in CONTROLLERS]
         lines.append(f"| {r.radius:g} | {r.speed:g} | " + " | ".join(cells) +
                      f" | {best} | {PAPER_ONLINE[(r.radius, r.speed)]:.4f} | {PAPER_MPC[(r.radius, r.speed)]:.4f} |")
     wins = sum(min(r.mse, key=r.mse.get) == "online" for r in results)
-    lines += ["", f"KNODE-MPC-Online has the lowest MSE in {wins} of {len(results)} cells."]
+    lines += ["", f"KNODE-MPC-Online has the lowest MSE in {wins} of {len(results)} cells.",
+              *summary_lines([r.mse for r in results], CONTROLLERS), "",
+              "Time to recover [s] (0.5x step / 1.33x step), peak error [m] in brackets. " + recovery_legend(), "",
+              "| r [m] | v [m/s] | " + " | ".join(LABELS[k] for k in CONTROLLERS) + " |",
+              "|---|---|" + "---|" * len(CONTROLLERS)]
+    for r in results:
+        rec = [f"{recovery_text(r.recovery.get(k, []))} ({peak_text(r.recovery.get(k, []))})" for k in CONTROLLERS]
+        lines.append(f"| {r.radius:g} | {r.speed:g} | " + " | ".join(rec) + " |")
     return "\n".join(lines)
 
 
@@ -104,11 +120,15 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    cells = CELLS[:1] if args.quick else CELLS
+    from cfknode.app.bench.rows import check_latency_arguments, latency_flags, latency_note, latency_overrides
+
+    check_latency_arguments(args)
+    cells = CELLS[:1] if args.quick else parse_cells(getattr(args, "cells", None))
     duration = 4.0 if args.quick else 8.0
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-", dir=out))
-    command = f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} --jobs {args.jobs} --seed {args.seed}"
+    command = (f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} --jobs {args.jobs} "
+               f"--seed {args.seed}{latency_flags(args)}" + (f" --cells {args.cells}" if getattr(args, "cells", None) else ""))
     console = Console()
     results: list[CellResult] = []
     ctx = multiprocessing.get_context("spawn")
@@ -116,13 +136,13 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
                   TextColumn("{task.fields[last]}"), console=console) as bar, \
             cf.ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
         task = bar.add_task("cells", total=len(cells), last="")
-        futures = [pool.submit(run_cell, r, v, duration, args.seed, str(logs)) for r, v in cells]
+        futures = [pool.submit(run_cell, r, v, duration, args.seed, str(logs), latency_overrides(args)) for r, v in cells]
         for fut in cf.as_completed(futures):
             res = fut.result()
             results.append(res)
             bar.update(task, advance=1, last=f"r={res.radius:g} v={res.speed:g}: online {res.mse['online']:.4f}")
     results.sort(key=lambda r: (r.radius, r.speed))
-    md = markdown(results, command, version)
+    md = markdown(results, command, version, latency_note(args))
     stem = "paper_hierarchical" + ("_quick" if args.quick else "")
     (out / f"{stem}.md").write_text(md + "\n")
     (out / f"{stem}.json").write_text(json.dumps({"command": command, "version": version,
@@ -130,3 +150,21 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     console.print(md)
     console.print(f"wrote {out / (stem + '.md')}, {out / (stem + '.json')}; flight logs in {logs}")
     return 0
+
+
+def parse_cells(text: str | None) -> tuple[tuple[float, float], ...]:
+    """``--cells 2:0.8,3:1.0`` -> those of the paper's cells (None: all nine); anything else is a usage error."""
+    from cfknode.app.cli import UsageError
+
+    if not text:
+        return CELLS
+    chosen = []
+    for item in text.split(","):
+        try:
+            r, v = (float(x) for x in item.split(":"))
+        except ValueError:
+            raise UsageError(f"--cells expects r:v pairs like 2:0.8,3:1.0, got {item!r}") from None
+        if (r, v) not in CELLS:
+            raise UsageError(f"--cells {item}: not one of the paper's cells (r in 2, 3, 4 m; v in 0.8, 1.0, 1.2 m/s)")
+        chosen.append((r, v))
+    return tuple(chosen)

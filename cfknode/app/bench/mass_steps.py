@@ -61,6 +61,9 @@ CONTROLLER_OVERRIDES: dict[str, Any] = {
     "offline": lambda model: {"controller.model": str(model)},
     "geometric": lambda model: {"controller.kind": "geometric"},
     "online": lambda model: {"online.enabled": True},
+    "dob": lambda model: {"controller.adaptation": "dob"},
+    "online_dob": lambda model: {"online.enabled": True, "controller.adaptation": "dob"},
+    "oracle": lambda model: {"controller.adaptation": "oracle"},  # a reference: the true mass every tick
 }
 
 

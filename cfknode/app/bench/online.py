@@ -5,11 +5,13 @@ Two cells with the paper's mass changes (``cfknode.app.bench.mass_steps``): the 
 trained on a flight that saw only the first change, then nominal MPC, offline KNODE-MPC and
 KNODE-MPC-Online fly the same seeded scenario, once per seed. A third cell is the lab
 protocol of docs/design.md#targets (the same circle, +4.1 % mass at 5 s), against nominal MPC
-and the geometric controller. Online learning
-runs with honest latency (its trainer's real wall time), so its result varies from run to
-run; the table gives the median and the range over the seeds, and the online/baseline
-ratios of each seed. Flights run one at a time: a second flight on the other core would
-slow the trainer and so change what is measured.
+and the geometric controller. Every cell also flies the geometric controller, MPC and
+KNODE-MPC-Online with the fast adaptation layer (dob), and the oracle (the same MPC told the
+true mass at every tick), and reports each mass step's time to recover. Online learning runs
+with a reproducible latency by default (``--latency fixed``: the same numbers on a loaded
+machine); ``--latency wall`` flies its trainer's real wall time, which varies from run to run.
+The table gives the median and the range over the seeds, and the online/baseline ratios of
+each seed. Flights run one at a time.
 """
 
 from __future__ import annotations
@@ -23,9 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from cfknode.app.bench.rows import (LABELS, ORACLE, add_latency_arguments, check_latency_arguments, latency_flags,
+                                latency_note, latency_overrides, peak_text, recovery_legend, recovery_text,
+                                summary_lines)
 from cfknode.app.bench.mass_steps import PAPER_STEPS
 
-COMPARED = ("nominal", "offline", "online")
+COMPARED = ("geometric", "nominal", "offline", "online", "dob", "online_dob", "oracle")
+ACCEPTANCE = ("nominal", "offline", "geometric")  # online must beat these (the others are references)
 
 
 @dataclass(frozen=True)
@@ -59,7 +65,7 @@ LAB = CellSpec("lab circle", 0.5, 0.4, 30.0)
 PAPER = CellSpec("paper r=2 v=0.8", 2.0, 0.8, 8.0, (("trajectory.ramp_duration", 0.0), ("trajectory.height", 1.5)))
 QUICK = CellSpec("paper r=2 v=0.8, 4 s", 2.0, 0.8, 4.0, PAPER.overrides, ((1.0, 0.5), (2.5, 1.33)))
 LAB_SMALL = CellSpec("lab circle +4.1 %", 0.5, 0.4, 30.0, steps=((5.0, 1.041),),
-                     controllers=("nominal", "geometric", "online"))
+                     controllers=tuple(c for c in COMPARED if c != "offline"))
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,7 @@ class Run:
     mse_z: float
     outcome: str
     online: dict[str, Any] = field(default_factory=dict)
+    recovery: tuple[dict[str, Any], ...] = ()  # per mass step: time to recover, peak error (FlightSummary.recovery)
 
 
 @dataclass(frozen=True)
@@ -80,7 +87,12 @@ class CellReport:
 
     @property
     def baselines(self) -> tuple[str, ...]:
-        return tuple(c for c in self.cell.controllers if c != "online")
+        return tuple(c for c in self.flown if c in ACCEPTANCE)
+
+    @property
+    def flown(self) -> tuple[str, ...]:
+        """The cell's controllers that have runs, in the cell's order."""
+        return tuple(c for c in self.cell.controllers if any(r.controller == c for r in self.runs))
 
     def mse(self, controller: str) -> np.ndarray:
         return np.array([r.mse for r in self.runs if r.controller == controller])
@@ -97,7 +109,8 @@ class CellReport:
         return all(on < float(np.median(self.mse(b))) for b in self.baselines)
 
 
-def run_cell(cell: CellSpec, seeds: tuple[int, ...], out: Path, progress: Any = None) -> CellReport:
+def run_cell(cell: CellSpec, seeds: tuple[int, ...], out: Path, progress: Any = None,
+             latency: dict[str, Any] | None = None) -> CellReport:
     from cfknode.app.config import load_config
     from cfknode.app.bench.mass_steps import CONTROLLER_OVERRIDES, mass_schedule, train_offline_model
     from cfknode.app.mission import run_flight
@@ -111,7 +124,7 @@ def run_cell(cell: CellSpec, seeds: tuple[int, ...], out: Path, progress: Any = 
     runs = []
     for seed in seeds:
         for controller in cell.controllers:
-            overrides = {**cell.config(str(out), seed), "sim.mass_changes": list(schedule.both),
+            overrides = {**cell.config(str(out), seed), "sim.mass_changes": list(schedule.both), **(latency or {}),
                          **CONTROLLER_OVERRIDES[controller](model)}
             res = run_flight(load_config(overrides=overrides), name_hint=f"{name}-{controller}-s{seed}")
             online = {}
@@ -120,36 +133,44 @@ def run_cell(cell: CellSpec, seeds: tuple[int, ...], out: Path, progress: Any = 
                           if k.startswith(("models_", "swap_", "install_", "train_wall", "latency_", "rounds_slower", "ticks_late"))}
                 online.update(speed_factor=res.summary.speed_factor, missed_deadlines=res.summary.missed_deadlines,
                               ticks=res.summary.ticks, t_col=res.summary.extra.get("online_t_col_s"))
-            runs.append(Run(controller, seed, res.summary.mse, res.summary.mse_z, res.outcome.message, online))
+            runs.append(Run(controller, seed, res.summary.mse, res.summary.mse_z, res.outcome.message, online,
+                            tuple(dict(r) for r in res.summary.recovery)))
             if progress is not None:
                 progress(f"{cell.name} seed {seed} {controller}: MSE {res.summary.mse:.3g}")
     return CellReport(cell, tuple(runs), time.perf_counter() - start)
 
 
-NAMES = {"nominal": "nominal MPC", "offline": "offline KNODE-MPC", "geometric": "geometric", "online": "KNODE-MPC-Online"}
+NAMES = LABELS
 
 
-def markdown(reports: list[CellReport], command: str, version: str) -> str:
+def markdown(reports: list[CellReport], command: str, version: str, latency_note: str = "") -> str:
     lines = [
         "## Online learning (acceptance protocol)",
         "",
         f"`{command}`, cfknode {version}. MSE in m^2 on the pattern (mean over the axes): median over the "
-        "seeds, [min, max] in brackets; ratios are online over the baseline, seed by seed.",
+        "seeds, [min, max] in brackets; online / this: online's MSE over this row's, seed by seed. " + latency_note,
+        "", "Time to recover: median over the seeds, per mass step; peak: from the first seed. " + recovery_legend(),
     ]
     for rep in reports:
         steps = ", ".join(f"{f:g}x at {t:g} s" for t, f in rep.cell.steps)
         lines += ["", f"**{rep.cell.name}** (r = {rep.cell.radius:g} m, {rep.cell.speed:g} m/s, {rep.cell.duration:g} s; "
                   f"mass {steps} into the pattern; {len(set(r.seed for r in rep.runs))} seeds)", "",
-                  "| " + " | ".join(NAMES[c] for c in rep.cell.controllers) + " | "
-                  + " | ".join(f"online / {b}" for b in rep.baselines) + " | met |",
-                  "|" + "---|" * (len(rep.cell.controllers) + len(rep.baselines) + 1)]
-        cells = []
-        for c in rep.cell.controllers:
+                  "| controller | MSE | / oracle | online / this | time to recover [s] | peak error [m] |",
+                  "|---|---|---|---|---|---|"]
+        oracle = rep.mse(ORACLE)
+        for c in rep.flown:
             m = rep.mse(c)
-            cells.append(f"{np.median(m):.4g} [{m.min():.3g}, {m.max():.3g}]" if m.size > 1 else f"{m[0]:.4g}")
-        ratios = [rep.ratios(b) for b in rep.baselines]
-        rtext = [f"{np.median(r):.2f} (wins {int((r < 1).sum())}/{r.size})" for r in ratios]
-        lines.append("| " + " | ".join(cells + rtext) + f" | {'yes' if rep.met else 'no'} |")
+            mse = f"{np.median(m):.4g} [{m.min():.3g}, {m.max():.3g}]" if m.size > 1 else f"{m[0]:.4g}"
+            to_oracle = f"{np.median(m) / np.median(oracle):.2f}" if oracle.size and np.median(oracle) > 0 else "-"
+            r = rep.ratios(c) if c != "online" else np.zeros(0)
+            vs = f"{np.median(r):.2f} (wins {int((r < 1).sum())}/{r.size})" if r.size else "-"
+            recs = [x.recovery for x in rep.runs if x.controller == c]
+            lines.append(f"| {NAMES[c]} | {mse} | {to_oracle} | {vs} | {_median_recovery(recs)} | "
+                         f"{peak_text(recs[0]) if recs else '-'} |")
+        lines += ["", f"| acceptance: online's median below {', '.join(NAMES[b] for b in rep.baselines)} "
+                  f"| {'yes' if rep.met else 'no'} |", "|---|---|"]
+    medians = [{c: float(np.median(rep.mse(c))) for c in rep.flown} for rep in reports]
+    lines += ["", *summary_lines(medians, COMPARED)]
     lines += ["", "| cell | swap median / max [ms] | install slice max [ms] | training round median / max [s] "
               "| t_col [s] | models trained / accepted / rejected / dropped | missed ticks (late from install) | speed |",
               "|---|---|---|---|---|---|---|---|"]
@@ -166,6 +187,18 @@ def markdown(reports: list[CellReport], command: str, version: str) -> str:
     return "\n".join(lines)
 
 
+def _median_recovery(recs: list[tuple[dict[str, Any], ...]]) -> str:
+    """Median over the seeds of each step's time to recover ('never' counted as infinite)."""
+    if not recs or not recs[0]:
+        return "-"
+    out = []
+    for i in range(len(recs[0])):
+        times = [r[i].get("time_to_recover_s") for r in recs if len(r) > i]
+        med = float(np.median([np.inf if x is None else x for x in times]))
+        out.append({"time_to_recover_s": med if np.isfinite(med) else None})
+    return recovery_text(out)
+
+
 def _f(value: Any, digits: int) -> str:
     return "-" if value is None else f"{float(value):.{digits}g}"
 
@@ -174,6 +207,7 @@ def add_online_arguments(p: Any) -> None:
     p.add_argument("--quick", action="store_true", help="one 4 s paper cell, one seed: a smoke test (< 1 min)")
     p.add_argument("--seeds", type=int, default=3, help="seeded flights per controller and cell (default 3)")
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
+    add_latency_arguments(p)
 
 
 def run_online(args: Any, version: str) -> int:
@@ -183,6 +217,7 @@ def run_online(args: Any, version: str) -> int:
 
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    check_latency_arguments(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is not a directory")
@@ -191,9 +226,10 @@ def run_online(args: Any, version: str) -> int:
     console = Console()
     cells = (QUICK,) if args.quick else (LAB, PAPER, LAB_SMALL)
     seeds = (0,) if args.quick else tuple(range(args.seeds))
-    command = "cfknode bench online" + (" --quick" if args.quick else f" --seeds {args.seeds}")
-    reports = [run_cell(c, seeds, logs, progress=lambda text: console.print(f"[dim]{text}[/]")) for c in cells]
-    md = markdown(reports, command, version)
+    command = "cfknode bench online" + (" --quick" if args.quick else f" --seeds {args.seeds}") + latency_flags(args)
+    reports = [run_cell(c, seeds, logs, progress=lambda text: console.print(f"[dim]{text}[/]"),
+                        latency=latency_overrides(args)) for c in cells]
+    md = markdown(reports, command, version, latency_note(args))
     stem = "online" + ("_quick" if args.quick else "")
     (out / f"{stem}.md").write_text(md + "\n")
     (out / f"{stem}.json").write_text(json.dumps(
@@ -203,5 +239,5 @@ def run_online(args: Any, version: str) -> int:
     return 0
 
 
-__all__ = ["COMPARED", "CellReport", "CellSpec", "LAB", "LAB_SMALL", "PAPER", "QUICK", "Run", "markdown", "run_cell",
+__all__ = ["ACCEPTANCE", "COMPARED", "CellReport", "CellSpec", "LAB", "LAB_SMALL", "PAPER", "QUICK", "Run", "markdown", "run_cell",
            "run_online"]

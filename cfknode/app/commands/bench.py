@@ -46,6 +46,10 @@ def _add_paper_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cells", metavar="R:V,...", help="hierarchical mode: only these of the paper's cells, e.g. 2:0.8,3:1.0")
+    from cfknode.app.bench.rows import add_latency_arguments
+
+    add_latency_arguments(p)  # hierarchical mode's online rows
 
 
 def _run_paper(args: argparse.Namespace) -> int:
@@ -153,7 +157,7 @@ BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callabl
     "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
     "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
                _run_timing),
-    "online": ("the online-learning acceptance protocol: online vs nominal and offline KNODE-MPC under the paper's mass changes",
+    "online": ("the online-learning protocol: online vs the other controllers and the oracle under the paper's mass changes",
                _add_online_arguments, _run_online),
     "robustness": ("every controller on plants it was not tuned on: motor lag, thrust-to-weight, attitude response, "
                    "thrust map, mocap latency and noise, wind, gusts, mass steps, battery sag",

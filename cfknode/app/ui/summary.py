@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cfknode.app.logs.reader import LogData
+from cfknode.flight.recovery import RECOVERY_THRESHOLD_M, step_recoveries
 
 __all__ = [
     "FlightSummary",
@@ -74,6 +75,8 @@ class FlightSummary:
     speed_factor: float  # simulated seconds per wall second
     log_path: str | None
     extra: dict[str, Any] = field(default_factory=dict)
+    # Per mass step (simulation): {"t", "factor", "time_to_recover_s" (None: never), "peak_error_m"}; see recovery.py
+    recovery: tuple[dict[str, Any], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-safe dict: lists for tuples, None for non-finite numbers."""
@@ -116,13 +119,18 @@ def compute_summary(
     *,
     duration: float | None = None,
     extra: Mapping[str, Any] | None = None,
+    steps: Sequence[tuple[float, float]] = (),
+    recovery_margin_s: float = 0.0,
 ) -> FlightSummary:
     """Summarise a flight from per-tick arrays (pure).
 
     ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
     ``compute_s``, ``solve_s`` and ``missed`` are per tick (any common length; a NaN or zero
     solve time means no solve ran that tick). ``window`` selects t0 <= t <= t1 for the
-    pattern metrics. ``duration`` defaults to the span of ``t``.
+    pattern metrics. ``duration`` defaults to the span of ``t``. ``steps``: (time, mass factor) of
+    the simulator's mass changes; each gets its time to recover and peak error, judged until the
+    next step or ``recovery_margin_s`` before the pattern's end (an MPC brakes for the pattern's
+    end one preview horizon early, which is not the step's doing).
     """
     t = np.asarray(t, dtype=float).reshape(-1)
     p = np.asarray(p, dtype=float).reshape(-1, 3)
@@ -146,6 +154,8 @@ def compute_summary(
     solve_ms = solve_ms[solve_ms > 0] * 1e3
     if duration is None:
         duration = float(t[-1] - t[0]) if len(t) else 0.0
+    err = np.linalg.norm(p - p_ref, axis=1) if len(t) else np.zeros(0)
+    recoveries = tuple(r.to_dict() for r in step_recoveries(t, err, steps, t1 - recovery_margin_s))
     return FlightSummary(
         window=(t0, t1),
         window_samples=pattern.samples,
@@ -173,6 +183,7 @@ def compute_summary(
         speed_factor=float(duration) / wall_time if wall_time > 0 else math.nan,
         log_path=log_path,
         extra=dict(extra or {}),
+        recovery=recoveries,
     )
 
 
@@ -234,12 +245,14 @@ def summary_from_dict(data: Mapping[str, Any]) -> FlightSummary:
     values: dict[str, Any] = {}
     for f in dataclasses.fields(FlightSummary):
         if f.name not in data:
-            if f.name == "extra":
+            if f.name in ("extra", "recovery"):
                 continue
             raise ValueError(f"flight summary lacks field {f.name!r}")
         value = data[f.name]
         if f.name == "window":
             value = tuple(math.nan if v is None else float(v) for v in value)
+        elif f.name == "recovery":
+            value = tuple(dict(v) for v in value)
         elif value is None and f.name not in ("log_path",):
             value = math.nan
         values[f.name] = value
@@ -264,6 +277,13 @@ def render_summary(summary: FlightSummary, console: Console) -> None:
     table.add_row("MSE x / y / z", " / ".join(_g(v) for v in (s.flight_mse_x, s.flight_mse_y, s.flight_mse_z)), "m^2")
     table.add_row("MSE (mean over axes)", _g(s.flight_mse), "m^2")
     table.add_row("RMS / max error", f"{_g(s.flight_rms_error)} / {_g(s.flight_max_error)}", "m")
+    if s.recovery:
+        table.add_section()
+        table.add_row(f"[bold]mass steps[/] (recovered: error < {100 * RECOVERY_THRESHOLD_M:g} cm to the next step)", "", "")
+        for r in s.recovery:
+            ttr = r.get("time_to_recover_s")
+            table.add_row(f"{r['factor']:g}x at {r['t']:.2f} s: time to recover / peak error",
+                          f"{'never' if ttr is None else f'{ttr:.2f}'} / {_g(r.get('peak_error_m'))}", "s / m")
     table.add_section()
     missed = f"{s.missed_deadlines} / {s.ticks}"
     table.add_row("missed deadlines / ticks", f"[red]{missed}[/]" if s.missed_deadlines else missed, "")
