@@ -14,6 +14,16 @@ class MassChange:
 
 
 @dataclass(frozen=True)
+class DownwashConfig:
+    """Downwash between simulated drones (fleet flights; sim_backend/downwash.py, docs/fleet.md#downwash)."""
+
+    enabled: bool = False
+    peak_fraction: float = 0.15  # downward force on a drone right below, as a fraction of the upper drone's thrust
+    height: float = 1.0  # m of vertical gap at which the force has fallen to zero (linearly)
+    radius: float = 0.1  # m, Gaussian radial scale of the wake (rotor-disk / airframe scale)
+
+
+@dataclass(frozen=True)
 class SimConfig:
     seed: int
     dt: float
@@ -28,6 +38,7 @@ class SimConfig:
     mass_changes: tuple[MassChange, ...]
     wind: Vec3
     drag: Vec3
+    downwash: DownwashConfig = DownwashConfig()
 
 
 @dataclass(frozen=True)
