@@ -321,9 +321,9 @@ async def _gather(drones: Sequence[FleetDrone], parts: Sequence[FlightParts],
     finally:
         try:
             loop.remove_signal_handler(signal.SIGINT)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         except (RuntimeError, ValueError, NotImplementedError):
-            pass
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+            pass  # not the main thread: the handlers were never ours
 
 
 def true_min_separation(records: Sequence[FlightRecord]) -> float:
