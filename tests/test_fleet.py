@@ -237,3 +237,33 @@ def test_estop_all_reaches_every_drone_of_a_fleet(tmp_path):
     assert codes == [0]
     assert [d.outcome.cause for d in result.drones] == ["estop_land", "estop_land"]
     assert all(d.outcome.state.value == "LANDED" for d in result.drones)
+
+
+def test_downwash_pushes_a_drone_below_down_and_fades_with_distance():
+    from cfknode.sim_backend.downwash import downwash_force_z
+    from cfknode.sim_backend.settings import DownwashConfig
+
+    cfg = DownwashConfig(enabled=True, peak_fraction=0.15, height=1.0, radius=0.1)
+    thrust = 0.33
+    right_below = downwash_force_z((0, 0, 1.0), (0, 0, 1.5), thrust, cfg)
+    assert right_below == pytest.approx(-0.15 * thrust * 0.5)
+    assert downwash_force_z((0, 0, 1.0), (0, 0, 1.2), thrust, cfg) < right_below < 0  # closer: stronger
+    assert downwash_force_z((0.1, 0, 1.0), (0, 0, 1.5), thrust, cfg) == pytest.approx(right_below / np.e)
+    assert downwash_force_z((0, 0, 1.5), (0, 0, 1.0), thrust, cfg) == 0.0  # the upper one feels nothing
+    assert downwash_force_z((0, 0, 0.0), (0, 0, 1.0), thrust, cfg) == 0.0  # beyond its height
+    assert downwash_force_z((0, 0, 1.0), (0, 0, 1.5), 0.0, cfg) == 0.0  # motors off: no wake
+
+
+def test_with_downwash_the_lower_of_two_stacked_drones_sags(tmp_path):
+    over = {"fleet.layout": "stack", "trajectory.duration": 2.0}
+    off = run_fleet(fleet_cfg(tmp_path, **over))
+    on = run_fleet(fleet_cfg(tmp_path, **over, **{"sim.downwash.enabled": True}))
+    assert off.complete and on.complete
+
+    def z_error(result, k):
+        rec, (t0, t1) = result.drones[k].record, result.drones[k].summary.window
+        w = (rec.t >= t0) & (rec.t <= t1)
+        return float(np.mean(rec.p[w, 2] - rec.p_ref[w, 2]))
+
+    assert z_error(on, 0) < z_error(off, 0) - 1e-3  # pushed down while right below the other
+    assert abs(z_error(on, 1) - z_error(off, 1)) < 1e-3  # the upper drone feels nothing
