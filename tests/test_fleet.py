@@ -267,3 +267,12 @@ def test_with_downwash_the_lower_of_two_stacked_drones_sags(tmp_path):
 
     assert z_error(on, 0) < z_error(off, 0) - 1e-3  # pushed down while right below the other
     assert abs(z_error(on, 1) - z_error(off, 1)) < 1e-3  # the upper drone feels nothing
+
+
+def test_cli_refuses_a_fleet_over_budget_in_one_line_with_exit_status_2(tmp_path, capsys):
+    from cfknode.app.cli import main
+
+    code = main(["fly", "--fleet", "3", "--headless", "--log-dir", str(tmp_path), "--set", "fleet.drones_per_sim_radio=3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith("cfknode: error: take-off refused: sim radio 0 would carry 630 packets/s")
