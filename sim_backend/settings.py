@@ -14,6 +14,16 @@ class MassChange:
 
 
 @dataclass(frozen=True)
+class DownwashConfig:
+    """Downwash between simulated drones (fleet flights; sim_backend/downwash.py, docs/fleet.md#downwash)."""
+
+    enabled: bool = False
+    peak_fraction: float = 0.15  # downward force on a drone right below, as a fraction of the upper drone's thrust
+    height: float = 1.0  # m of vertical gap at which the force has fallen to zero (linearly)
+    radius: float = 0.1  # m, Gaussian radial scale of the wake (rotor-disk / airframe scale)
+
+
+@dataclass(frozen=True)
 class SimConfig:
     seed: int
     dt: float
@@ -35,6 +45,7 @@ class SimConfig:
     battery_sag_per_s: float = 0.0  # fraction of thrust_map_scale lost per second of sim time
     attitude_gain: float = 1.0  # roll/pitch the attitude loop tracks / the commanded angle
     yaw_gain: float = 1.0  # yaw rate the attitude loop tracks / the commanded rate
+    downwash: DownwashConfig = DownwashConfig()
 
 
 @dataclass(frozen=True)

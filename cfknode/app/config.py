@@ -18,6 +18,7 @@ from typing import Any, Literal, Mapping
 
 import yaml
 
+from cfknode.app.fleet_settings import FleetConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
 from cfknode.kernel.errors import ConfigError
 from cfknode.kernel.vehicle import Vec3, VehicleConfig
@@ -120,6 +121,7 @@ class Config:
     safety: SafetyConfig
     faults: FaultsConfig
     hardware: HardwareConfig
+    fleet: FleetConfig
 
     def to_dict(self) -> dict[str, Any]:
         return _plain(dataclasses.asdict(self))
@@ -206,6 +208,17 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("hardware.extpos_std", lambda v: v > 0, "> 0 m"),
     ("hardware.extquat_std", lambda v: v > 0, "> 0"),
     ("hardware.heartbeat_hz", lambda v: v == 0 or 2 <= v <= 50, "0 (off) or in [2, 50] Hz (the firmware allows 1 s)"),
+    ("fleet.size", lambda v: 0 <= v <= 16, "in 0..16"),
+    ("fleet.stack_spacing", lambda v: v > 0, "> 0 m"),
+    ("fleet.ground_spacing", lambda v: v > 0, "> 0 m"),
+    ("fleet.min_separation", lambda v: v >= 0, ">= 0 m (0: off)"),
+    ("fleet.hold_s", lambda v: v >= 0, ">= 0 s"),
+    ("fleet.radio_budget_pps", lambda v: v > 0, "> 0 packets/s"),
+    ("fleet.ping_hz", lambda v: v >= 0, ">= 0 Hz"),
+    ("fleet.drones_per_sim_radio", lambda v: v >= 1, ">= 1"),
+    ("sim.downwash.peak_fraction", lambda v: 0 <= v <= 1, "in [0, 1]"),
+    ("sim.downwash.height", lambda v: v > 0, "> 0 m"),
+    ("sim.downwash.radius", lambda v: v > 0, "> 0 m"),
     ("hardware.telemetry_hz", lambda v: 0.4 <= v <= 100, "in [0.4, 100] Hz (log periods 10..2540 ms)"),
 )
 

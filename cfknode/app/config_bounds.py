@@ -85,6 +85,17 @@ BOUNDS: dict[str, Bound] = {
     "controller.max_yaw_rate_deg": _b(0, 360, "deg/s", open_low=True),
     "controller.geometric_kp": _b(0, 10, "N/m", open_low=True),
     "controller.geometric_kd": _b(0, 5, "N/(m/s)"),
+    # Fast adaptation: observer bandwidths well below the 400 Hz tick, estimates physically plausible.
+    "controller.adaptation_settings.bandwidth_hz": _b(0, 50, "Hz", open_low=True),
+    "controller.adaptation_settings.predictor_gain": _b(0, 1000, "1/s", open_low=True),
+    "controller.adaptation_settings.adaptation_gain": _b(0, 1e5),
+    "controller.adaptation_settings.thrust_rate": _b(0, 200, "1/s"),
+    "controller.adaptation_settings.axis_rate": _b(0, 200, "1/s"),
+    "controller.adaptation_settings.max_offset": _b(0, 20, "m/s^2"),
+    "controller.adaptation_settings.thrust_scale_bounds": _b(0.1, 10, "x nominal mass", open_low=True),
+    "controller.adaptation_settings.axis_gain_bounds": _b(0.1, 10, open_low=True),
+    "controller.adaptation_settings.stale_pose_s": _b(0, 1, "s", open_low=True),
+    "controller.adaptation_settings.rebase_window_s": _b(0, 5, "s", open_low=True),
     # Estimator.
     "estimator.process_accel_std": _b(0, 100, "m/s^2", open_low=True),
     "estimator.position_std": _b(1e-5, 0.1, "m"),  # the Kalman filter needs a noise > 0
@@ -113,6 +124,22 @@ BOUNDS: dict[str, Bound] = {
     "sim.mass_changes.factor": _b(0.25, 4.0, "x nominal mass"),  # the range the online gate is built for
     "sim.wind": _WIND,
     "sim.drag": _b(0, 1, "N/(m/s)"),  # drag only takes energy out
+    "sim.thrust_map_scale": _b(0.5, 1.5),  # identified maps of individual Crazyflies differ by about 15 %
+    "sim.battery_sag_per_s": _b(0, 0.05, "1/s"),
+    "sim.attitude_gain": _b(0.5, 1.5),
+    "sim.yaw_gain": _b(0.25, 3),
+    "sim.downwash.peak_fraction": _b(0, 1),
+    "sim.downwash.height": _b(0, 5, "m", open_low=True),
+    "sim.downwash.radius": _b(0, 1, "m", open_low=True),
+    "estimator.command_delay": _b(0, 0.3, "s"),
+    "fleet.size": _b(0, 16, "drones"),
+    "fleet.min_separation": _b(0, 5, "m"),
+    "fleet.hold_s": _b(0, 10, "s"),
+    "fleet.stack_spacing": _b(0, 5, "m"),
+    "fleet.ground_spacing": _b(0, 5, "m"),
+    "fleet.drones_per_sim_radio": _b(1, 16, "drones"),
+    "fleet.radio_budget_pps": _b(50, 2000, "packets/s"),
+    "fleet.ping_hz": _b(0, 100, "Hz"),
     # KNODE networks and training.
     "knode.hidden": _b(1, 1024, "units"),
     "knode.queue_size": _b(1, 10),
@@ -142,6 +169,8 @@ BOUNDS: dict[str, Bound] = {
     "online.monitor_every_ticks": _b(1, 10_000, "ticks"),
     "online.monitor_margin": _b(1, 100),
     "online.monitor_floor": _b(0, 100, "m/s^2"),
+    "online.fixed_latency_s": _b(0, 60, "s"),
+    "online.latency_quantum_s": _b(0, 1, "s"),
     "online.inject.crash_at_round": _ROUND,
     "online.inject.hang_at_round": _ROUND,
     "online.inject.nan_at_round": _ROUND,

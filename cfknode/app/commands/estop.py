@@ -23,6 +23,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", help="the flight's robot name (simulated flights: sim-<robot>); "
                                    "default: the only flight running")
     p.add_argument("--id", dest="flight_id", help="the flight's id (pid-hex, as listed when several fly)")
+    p.add_argument("--all", dest="all_flights", action="store_true",
+                   help="every running flight, e.g. every drone of a fleet (each drone is its own flight, sim-cf1 ...)")
     p.add_argument("--land", action="store_true", help="land instead of stopping the motors")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the flight to take it")
     p.add_argument("--dir", help="e-stop mailbox directory (default: safety.estop_dir, else $XDG_RUNTIME_DIR/cfknode)")
@@ -35,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, flags={"dir": "safety.estop_dir"})
     action = "land" if args.land else "stop"
     directory = mailbox_dir(cfg.safety.estop_dir)
+    if getattr(args, "all_flights", False):
+        from cfknode.app.commands.estop_all import estop_all
+
+        return estop_all(directory, action, args.timeout)
     try:
         flight = find_flight(directory, args.robot, args.flight_id)
     except NoFlight as exc:

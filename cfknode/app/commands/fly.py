@@ -32,6 +32,8 @@ FLAGS: dict[str, str] = {
     "robots": "hardware.robots_file",
     "mocap": "hardware.mocap_type",
     "mocap_host": "hardware.mocap_host",
+    "fleet": "fleet.size",
+    "fleet_layout": "fleet.layout",
 }
 
 
@@ -71,6 +73,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--paper-lockstep", dest="paper_lockstep", action="store_true",
                    help="online learning as the paper's code does it: the simulation waits for every model "
                         "(for reproduction only)")
+    p.add_argument("--fleet", type=int, metavar="N", help="fly N simulated drones in one flight (docs/fleet.md)")
+    p.add_argument("--fleet-layout", dest="fleet_layout", choices=["ring", "stack"],
+                   help="fleet: evenly spaced on the circle (ring) or stacked heights (stack)")
     p.add_argument("--name", default=None,
                    help=f"name hint for the log file (up to {NAME_MAX} of A-Z a-z 0-9 . _ -)")
 
@@ -101,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--name must be 1 to {NAME_MAX} of the characters A-Z a-z 0-9 . _ - "
                          f"(it names the log file), got {shown!r} ({len(args.name)} characters)")
     cfg = config_from_args(args)  # validate before importing the heavy parts
+    if cfg.fleet.size >= 2:
+        from cfknode.app.commands.fly_fleet import run_fleet_command
+
+        return run_fleet_command(cfg, args)
     from rich.console import Console
 
     from cfknode.app.ui.dashboard import should_show_dashboard

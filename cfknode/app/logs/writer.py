@@ -192,6 +192,7 @@ class FlightLog:
         flush_interval: float = 0.5,
         chunk_size: int = 128 * 1024,
         compression: str = "lz4",
+        channels: tuple[ChannelSpec, ...] = CHANNELS,
     ) -> FlightLog:
         """Open a new log ``<directory>/YYYYmmdd-HHMMSS-<hint>.mcap`` (a ``-k`` suffix if taken).
 
@@ -226,7 +227,7 @@ class FlightLog:
                 "config": config_json,
             })
             topics: dict[str, tuple[int, bool]] = {}
-            for spec in CHANNELS:
+            for spec in channels:  # a fleet's log adds each drone's channels (/cf1/state, ...)
                 schema_id = writer.register_schema(
                     spec.schema_name, "jsonschema", json.dumps(spec.json_schema()).encode()
                 )

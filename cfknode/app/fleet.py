@@ -1,0 +1,344 @@
+"""A fleet flight: N simulated drones in one world, N flight loops in one event loop (``cfknode fly --fleet N``).
+
+Each drone has everything a single flight has (docs/fleet.md): its ``sim://`` link through the
+real cflib path, its estimator, its ``Controller`` and its ``Supervisor``, and runs the same
+``flight.loop.fly`` coroutine. The N coroutines run under ``asyncio.gather`` on one lockstep
+``FleetClock``: the world steps only when every loop waits for the next tick, so the drones
+see the same instants and none runs ahead. One process and one event loop: with N MPCs
+sharing two cores, threads would only add contention (the GIL) to the same compute.
+
+Before take-off: the references are checked for ``fleet.min_separation`` and the radios for
+their packet budget (cfknode/app/radio_budget.py); either refuses in one line. In flight the
+``FleetCoordinator`` (a tick observer of every drone) watches the separation (too close: the
+pair hovers in place for ``fleet.hold_s``, then lands) and applies ``fleet.on_fault`` when one
+drone's supervisor lands or stops it. One MCAP log holds every drone's channels under its name
+(``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
+--all`` reaches them all.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import re
+import signal
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from cfknode import __version__
+from cfknode.app.backends.sim_fleet import FleetDrone, FleetSimBackend
+from cfknode.app.config import Config, ConfigError
+from cfknode.app.flight_checks import refuse_unflyable
+from cfknode.app.logs.format import CHANNELS, ChannelSpec
+from cfknode.app.logs.writer import FlightLog
+from cfknode.app.mission import build_controller, build_model_slot, build_supervisor
+from cfknode.app.radio_budget import LinkLoad, check_radio_budget
+from cfknode.app.ui.summary import FlightSummary, compute_summary
+from cfknode.flight.controller import Controller, TickInfo
+from cfknode.flight.estimator import VelocityEstimator
+from cfknode.flight.formation import HoldableReference, fleet_references
+from cfknode.flight.loop import FlightParts, FlightRecord, fly
+from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
+from cfknode.safety.separation import SeparationWatch, refusal
+from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
+
+_FLYING = ("TAKEOFF", "TRACK", "LAND")
+_FAILED = ("LAND", "EMERGENCY", "IDLE", "LANDED")
+_OWN_CAUSES = ("separation", "fleet_fault")  # the fleet's own landings never trigger the fault policy
+
+
+@dataclass(frozen=True)
+class DroneResult:
+    name: str
+    uri: str
+    summary: FlightSummary
+    record: FlightRecord
+    outcome: Outcome
+
+
+@dataclass(frozen=True)
+class FleetResult:
+    drones: tuple[DroneResult, ...]
+    log_path: str
+    min_separation_m: float  # closest true distance between any two drones while either flew
+    radio_pps: dict[str, float]  # packets/s per radio
+    events: tuple[str, ...]  # the fleet's own decisions (separation, fault policy)
+    log_incomplete: str | None = None
+
+    @property
+    def complete(self) -> bool:
+        return all(d.outcome.state.value == "LANDED" and d.outcome.cause == "complete" for d in self.drones)
+
+
+def drone_names(cfg: Config) -> list[str]:
+    return [f"{cfg.fleet.name_prefix}{i + 1}" for i in range(cfg.fleet.size)]
+
+
+def fleet_channels(names: Sequence[str]) -> tuple[ChannelSpec, ...]:
+    """The fleet log's channels: the flight-wide ones, then every drone's under ``/<name>``."""
+    per_drone = [s for s in CHANNELS if s.topic != "/config"]
+    return (*CHANNELS, *(dataclasses.replace(s, topic=f"/{n}{s.topic}") for n in names for s in per_drone))
+
+
+class PrefixedLog:
+    """A drone's view of the fleet log: its topics under ``/<name>``."""
+
+    def __init__(self, inner: Any, name: str) -> None:
+        self._inner = inner
+        self._prefix = f"/{name}"
+
+    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None:
+        self._inner.write(self._prefix + topic, t, msg)
+
+
+def drone_configs(cfg: Config) -> tuple[list[str], list[Config], list[HoldableReference]]:
+    """Each drone's config (URI, start, seed) and reference, from the fleet settings."""
+    n = cfg.fleet.size
+    if n < 2:
+        raise ConfigError(f"config key 'fleet.size' must be at least 2 for a fleet flight, got {n}")
+    m = re.fullmatch(r"sim://(\d+)", cfg.radio.uri)
+    if cfg.backend != "sim" or m is None:
+        raise ConfigError("a fleet flies in simulation only (backend sim, radio.uri sim://N)")
+    if cfg.online.enabled:
+        raise ConfigError("config key 'online.enabled': online learning is not wired for fleet flights")
+    base = int(m.group(1))
+    ground_z = float(cfg.sim.initial_position[2])
+    try:
+        placed = fleet_references(cfg.trajectory, n, cfg.fleet.layout, ground_z, cfg.fleet.stack_spacing,
+                                  cfg.fleet.ground_spacing)
+    except ValueError as exc:
+        raise ConfigError(f"config section 'fleet': {exc}") from None
+    names = drone_names(cfg)
+    configs, refs = [], []
+    for i, (start, ref) in enumerate(placed):
+        configs.append(dataclasses.replace(
+            cfg,
+            sim=dataclasses.replace(cfg.sim, seed=cfg.sim.seed + i, initial_position=tuple(float(v) for v in start)),
+            radio=dataclasses.replace(cfg.radio, uri=f"sim://{base + i}"),
+        ))
+        refs.append(HoldableReference(ref))
+    return names, configs, refs
+
+
+def preflight(cfg: Config, names: Sequence[str], configs: Sequence[Config], refs: Sequence[Any]) -> dict[str, float]:
+    """Refuse a fleet whose references come too close or whose radios are over budget (one line each)."""
+    line = refusal(names, [r.inner for r in refs], cfg.fleet.min_separation)
+    if line is not None:
+        raise ConfigError(line)
+    loads = [LinkLoad(n, c.radio.uri, c.radio.tx_rate_hz, c.sim.mocap_rate_hz, cfg.fleet.ping_hz)
+             for n, c in zip(names, configs)]
+    return check_radio_budget(loads, cfg.fleet.radio_budget_pps, cfg.fleet.drones_per_sim_radio)
+
+
+class FleetCoordinator:
+    """Separation watch and fault policy across the fleet; a tick observer of every drone (``tap(i)``)."""
+
+    def __init__(self, cfg: Config, names: Sequence[str], supervisors: Sequence[Supervisor],
+                 refs: Sequence[HoldableReference], log: Any) -> None:
+        self.names = list(names)
+        self._sups = list(supervisors)
+        self._refs = list(refs)
+        self._log = log
+        self._policy = cfg.fleet.on_fault
+        self._hold_s = cfg.fleet.hold_s
+        self._period = 1.0 / cfg.controller.rate_hz
+        # The nominal landing starts here; a held drone must be landing before it (the
+        # supervisor's nominal landing would otherwise follow the held reference and cut in the air).
+        self._land_deadline = [r.segments["land"][0] - 2.0 * self._period for r in refs]
+        self.watch = SeparationWatch(names, cfg.fleet.min_separation)
+        self._state = [""] * len(names)
+        self._p: list[np.ndarray | None] = [None] * len(names)
+        self._land_at: dict[int, tuple[float, str, str]] = {}
+        self._faulted: set[int] = set()
+        self.events: list[str] = []
+
+    def tap(self, i: int) -> "_Tap":
+        return _Tap(self, i)
+
+    def interrupt(self) -> None:
+        """Ctrl-C for the whole fleet: every drone's supervisor gets it."""
+        for sup in self._sups:
+            sup.interrupt()
+
+    def on_tick(self, i: int, info: TickInfo) -> None:
+        t = info.t
+        pending = self._land_at.get(i)
+        if pending is not None and t >= pending[0] - 1e-9:
+            del self._land_at[i]
+            self._sups[i].request_land(pending[1], pending[2])
+        state = info.supervisor_state
+        if state != self._state[i]:
+            self._state[i] = state
+            if state in _FAILED and i not in self._faulted:
+                cause = self._sups[i].snapshot().cause
+                if cause and not cause.startswith(_OWN_CAUSES):
+                    self._faulted.add(i)
+                    self._on_fault(i, t, cause)
+        if info.est is not None:
+            self._p[i] = info.est.p
+            active = [s in _FLYING for s in self._state]
+            for a, b, d in self.watch.update(i, info.est.p, active):
+                self._event(t, "error", f"{self.names[a]} and {self.names[b]} are {d:.3f} m apart, under "
+                            f"fleet.min_separation {self.watch.min_separation:g} m: both hold, then land")
+                for k in (a, b):
+                    self._hold_then_land(k, t, t + self._hold_s, f"too close to {self.names[b if k == a else a]} "
+                                         f"({d:.3f} m)", "separation")
+
+    def _on_fault(self, i: int, t: float, cause: str) -> None:
+        others = [k for k in range(len(self.names)) if k != i]
+        self._event(t, "warning", f"{self.names[i]} ended its flight ({cause}); fleet.on_fault {self._policy}")
+        if self._policy == "land_all":
+            for k in others:
+                self._sups[k].request_land(f"fleet: {self.names[i]} failed ({cause})", "fleet_fault")
+        elif self._policy == "hold":
+            for k in others:
+                self._hold_then_land(k, t, self._land_deadline[k], f"fleet: {self.names[i]} failed ({cause}); "
+                                     "held, then landed", "fleet_fault")
+
+    def _hold_then_land(self, k: int, t: float, t_land: float, reason: str, cause: str) -> None:
+        if self._state[k] not in ("TAKEOFF", "TRACK"):
+            if self._state[k] in ("", "IDLE", "PREFLIGHT"):
+                self._sups[k].request_land(reason, cause)  # refuses a take-off not yet made
+            return  # already landing, landed or stopped: nothing to hold
+        if self._p[k] is not None:
+            self._refs[k].hold(t, self._p[k])
+        t_land = min(t_land, self._land_deadline[k])
+        if k not in self._land_at or t_land < self._land_at[k][0]:
+            self._land_at[k] = (t_land, reason, cause)
+
+    def _event(self, t: float, level: str, text: str) -> None:
+        self.events.append(f"{t:.3f} s {level}: {text}")
+        self._log.write("/events", t, {"level": level, "text": text, "source": "fleet"})
+
+
+@dataclass
+class _Tap:
+    coordinator: FleetCoordinator
+    index: int
+
+    def on_tick(self, tick: TickInfo) -> None:
+        self.coordinator.on_tick(self.index, tick)
+
+
+def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
+    """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary."""
+    names, configs, refs = drone_configs(cfg)
+    from cfknode.sim_backend.faults import check_faults
+
+    check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
+    radio_pps = preflight(cfg, names, configs, refs)
+    forced = refuse_unflyable(cfg)  # one vehicle for all drones: checked once
+    models = [build_model_slot(c) for c in configs]
+    mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts
+    boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), f"sim-{n}") for n in names]
+    try:
+        for box in boxes:
+            box.open()
+    except MailboxError as exc:
+        for box in boxes:
+            box.close()
+        raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
+    try:
+        with FleetSimBackend.open(names, configs) as backend:
+            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+    finally:
+        for box in boxes:
+            box.close()
+
+
+def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs: Sequence[HoldableReference],
+               models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
+               name_hint: str, forced: Sequence[dict[str, Any]]) -> FleetResult:
+    config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, backend.drones)}}
+    with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
+        for event in forced:
+            flog.write("/events", 0.0, event)
+        logs = [PrefixedLog(flog, n) for n in names]
+        sups = [build_supervisor(d.config, d.radio, trajectory=ref, log=log, deadlines_apply=False,
+                                 inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
+                for d, ref, log in zip(backend.drones, refs, logs)]
+        coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
+        parts = []
+        for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(backend.drones, refs, sups, logs, models, mpcs,
+                                                                      boxes)):
+            ground_z = float(d.start_position[2])
+            controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
+                                    deadline_s=None, ground_z=ground_z)
+            parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
+                                     trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
+                                     observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+        records = asyncio.run(_gather(backend.drones, parts, coordinator))
+        for d in backend.drones:
+            d.radio.shutdown()
+        firmware = backend.settle_after_handback()
+        results = []
+        for name, d, rec, sup, ref in zip(names, backend.drones, records, sups, refs):
+            outcome = sup.outcome()
+            summary = compute_summary(
+                t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
+                window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
+                extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
+                       "safety_state": outcome.state.value, "safety_cause": outcome.cause,
+                       "fallback_ticks": rec.fallbacks, "controller": cfg.controller.kind, "backend": "sim",
+                       "lockstep": True, "firmware_after_shutdown": firmware[name],
+                       "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"], **rec.adaptation})
+            flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
+            results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome))
+        closest = true_min_separation([r.record for r in results])
+        t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
+        flog.write("/summary", t_end, {"fleet": list(names), "min_separation_m": closest, "radio_pps": radio_pps,
+                                       "outcomes": {r.name: r.outcome.message for r in results}})
+    result = FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
+                         flog.incomplete())
+    return result
+
+
+async def _gather(drones: Sequence[FleetDrone], parts: Sequence[FlightParts],
+                  coordinator: FleetCoordinator) -> list[FlightRecord]:
+    loop = asyncio.get_running_loop()
+
+    def own_sigint() -> None:
+        # Each loop routes SIGINT to its own supervisor while it runs; the fleet's Ctrl-C goes to all.
+        try:
+            loop.add_signal_handler(signal.SIGINT, coordinator.interrupt)
+        except (RuntimeError, ValueError, NotImplementedError):
+            pass
+
+    async def one(drone: FleetDrone, p: FlightParts) -> FlightRecord:
+        try:
+            return await fly(p)
+        finally:
+            drone.clock.leave()
+            own_sigint()
+
+    tasks = [asyncio.ensure_future(one(d, p)) for d, p in zip(drones, parts)]
+    await asyncio.sleep(0)  # every loop has started (and taken SIGINT for itself)
+    own_sigint()
+    try:
+        return list(await asyncio.gather(*tasks))
+    finally:
+        try:
+            loop.remove_signal_handler(signal.SIGINT)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        except (RuntimeError, ValueError, NotImplementedError):
+            pass  # not the main thread: the handlers were never ours
+
+
+def true_min_separation(records: Sequence[FlightRecord]) -> float:
+    """The smallest distance between any two drones' recorded positions at the same tick (true
+    positions in simulation), over the ticks where both recorded; inf for fewer than two."""
+    best = float("inf")
+    for i in range(len(records)):
+        for j in range(i + 1, len(records)):
+            n = min(records[i].ticks, records[j].ticks)
+            if n == 0:
+                continue
+            d = np.linalg.norm(records[i].p[:n] - records[j].p[:n], axis=1)
+            best = min(best, float(d.min()))
+    return best
+
+
+__all__ = ["DroneResult", "FleetCoordinator", "FleetResult", "drone_configs", "fleet_channels", "preflight",
+           "run_fleet", "true_min_separation"]

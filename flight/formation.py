@@ -1,0 +1,155 @@
+"""Per-drone references for a fleet: one pattern, offset per robot.
+
+- ``ring``: drone i flies the pattern rotated by 2 pi i / N about its centre, so N drones are
+  evenly spaced around one circle (phase offsets); each takes off straight up from below its
+  first point.
+- ``stack``: every drone flies the same circle, drone i ``stack_spacing * i`` higher. They
+  start side by side on the ground (``ground_spacing`` apart) and each stays on the pattern
+  long enough longer than the one below to land ``ground_spacing`` further along the circle,
+  so no two land on the same spot.
+
+``HoldableReference`` lets the fleet freeze one drone's reference where the drone is (hover
+in place), e.g. when two drones came too close.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from cfknode.flight.settings import TrajectoryConfig
+from cfknode.flight.trajectory import make_trajectory
+from cfknode.kernel.reference import Reference, RefSamples
+
+
+class RotatedReference:
+    """``inner`` rotated by ``angle`` (rad) about the vertical axis through ``center`` (x, y)."""
+
+    def __init__(self, inner: Reference, center: Sequence[float], angle: float) -> None:
+        self._inner = inner
+        self._c = np.array([center[0], center[1], 0.0])
+        c, s = math.cos(angle), math.sin(angle)
+        self._r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    @property
+    def duration(self) -> float:
+        return self._inner.duration
+
+    @property
+    def segments(self) -> Mapping[str, tuple[float, float]]:
+        return self._inner.segments
+
+    @property
+    def pattern_window(self) -> tuple[float, float]:
+        return self._inner.segments["pattern"]
+
+    @property
+    def final_position(self) -> np.ndarray:
+        return self._c + self._r @ (self._inner.final_position - self._c)
+
+    def sample(self, t: np.ndarray) -> RefSamples:
+        ref = self._inner.sample(t)
+        rt = self._r.T
+        return RefSamples(t=ref.t, p=(ref.p - self._c) @ rt + self._c, v=ref.v @ rt, a=ref.a @ rt, yaw=ref.yaw)
+
+
+class HoldableReference:
+    """``inner``, until ``hold(t, p)``: from then on, hover at ``p`` (zero velocity and acceleration)."""
+
+    def __init__(self, inner: Reference) -> None:
+        self._inner = inner
+        self._hold: tuple[float, np.ndarray, float] | None = None
+
+    @property
+    def inner(self) -> Reference:
+        return self._inner
+
+    @property
+    def held_since(self) -> float | None:
+        return None if self._hold is None else self._hold[0]
+
+    @property
+    def duration(self) -> float:
+        return self._inner.duration
+
+    @property
+    def segments(self) -> Mapping[str, tuple[float, float]]:
+        return self._inner.segments
+
+    @property
+    def pattern_window(self) -> tuple[float, float]:
+        return self._inner.segments["pattern"]
+
+    @property
+    def final_position(self) -> np.ndarray:
+        return self._inner.final_position
+
+    def hold(self, t: float, p: Sequence[float]) -> None:
+        """Hover at ``p`` from time ``t`` (the first hold wins)."""
+        if self._hold is None:
+            yaw = float(self._inner.sample(np.array([t])).yaw[0])
+            self._hold = (float(t), np.array(p, dtype=float), yaw)
+
+    def sample(self, t: np.ndarray) -> RefSamples:
+        if self._hold is None:
+            return self._inner.sample(t)
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        t0, p, yaw = self._hold
+        ref = self._inner.sample(t)
+        after = t >= t0
+        if not after.any():
+            return ref
+        ref_p, ref_v, ref_a, ref_yaw = ref.p.copy(), ref.v.copy(), ref.a.copy(), ref.yaw.copy()
+        ref_p[after], ref_v[after], ref_a[after], ref_yaw[after] = p, 0.0, 0.0, yaw
+        return RefSamples(t=t, p=ref_p, v=ref_v, a=ref_a, yaw=ref_yaw)
+
+
+def fleet_references(
+    cfg: TrajectoryConfig, n: int, layout: str, ground_z: float, stack_spacing: float, ground_spacing: float
+) -> list[tuple[np.ndarray, Reference]]:
+    """(start position, reference) for each of ``n`` drones flying ``cfg`` in ``layout``."""
+    if n < 1:
+        raise ValueError("a fleet needs at least one drone")
+    center = (float(cfg.center[0]), float(cfg.center[1]))
+    if layout == "ring":
+        start = _under_first_point(cfg, ground_z)
+        base = make_trajectory(cfg, start)
+        out: list[tuple[np.ndarray, Reference]] = []
+        for i in range(n):
+            ref = RotatedReference(base, center, 2.0 * math.pi * i / n)
+            out.append((ref.sample(np.zeros(1)).p[0].copy(), ref))
+        return out
+    if layout == "stack":
+        out = []
+        for i in range(n):
+            level = dataclasses.replace(cfg, height=cfg.height + i * stack_spacing,
+                                        duration=_stack_duration(cfg, i, ground_spacing))
+            start = _under_first_point(level, ground_z) + np.array([0.0, i * ground_spacing, 0.0])
+            out.append((start, make_trajectory(level, start)))
+        return out
+    raise ValueError(f"unknown fleet layout {layout!r} (ring or stack)")
+
+
+def _under_first_point(cfg: TrajectoryConfig, ground_z: float) -> np.ndarray:
+    """On the ground right below the pattern's first point."""
+    probe = make_trajectory(cfg, (0.0, 0.0, ground_z))
+    first = probe.sample(np.array([probe.segments["takeoff"][1]])).p[0]
+    return np.array([first[0], first[1], ground_z])
+
+
+def _stack_duration(cfg: TrajectoryConfig, level: int, ground_spacing: float) -> float:
+    """Pattern duration of stack level ``level``: its landing spot ``level * ground_spacing`` (chord)
+    further along the circle than the lowest drone's.
+
+    The pattern's end phase is omega * g(duration), g(d) = d - min(ramp, d / 2) (the ramp-in and
+    ramp-out each lose half a ramp of full-speed time, and short patterns shrink the ramp)."""
+    if level == 0 or cfg.kind != "circle":
+        return cfg.duration
+    chord = min(ground_spacing, 2.0 * cfg.radius)
+    phase = level * 2.0 * math.asin(chord / (2.0 * cfg.radius))
+    ramp = cfg.ramp_duration
+    target = cfg.duration - min(ramp, 0.5 * cfg.duration) + phase * cfg.radius / cfg.speed
+    return 2.0 * target if target <= ramp else target + ramp
