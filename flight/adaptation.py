@@ -30,7 +30,8 @@ Mode = Literal["none", "l1", "dob"]
 @dataclass(frozen=True)
 class AdaptationSettings:
     mode: Mode
-    bandwidth_hz: float  # low-pass cut-off of the disturbance estimate (dob) / of the l1 output filter
+    bandwidth_hz: float  # low-pass cut-off of the vertical disturbance estimate (dob) / of the l1 output filter
+    bandwidth_xy_hz: float  # the same for x and y: lower, since mocap noise enters there as tilt jitter
     predictor_gain: float  # 1/s, l1: velocity predictor's error feedback
     adaptation_gain: float  # 1/s^2, l1: adaptive law gain (the fast inner estimate)
     thrust_rate: float  # 1/s: how fast the vertical error moves into thrust_scale
@@ -65,7 +66,7 @@ class AdaptationEstimate:
 
 # ---------------------------------------------------------------- pure math
 
-def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarray | float, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """First-order disturbance observer: sigma = omega (v - z), z' = a_model + sigma.
 
     sigma is the low-pass (cut-off omega) of v' - a_model without differentiating v. Returns (z, sigma)."""
@@ -75,13 +76,13 @@ def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: float, dt
 
 def l1_step(
     v_hat: np.ndarray, sigma_hat: np.ndarray, sigma_f: np.ndarray, v: np.ndarray, a_model: np.ndarray,
-    k_pred: float, gamma: float, omega: float, dt: float, bound: float,
+    k_pred: float, gamma: float, omega: np.ndarray | float, dt: float, bound: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """L1-style: velocity predictor, gradient adaptive law with projection (a box), low-pass output filter."""
     err = v_hat - v
     sigma_hat = np.clip(sigma_hat - dt * gamma * err, -bound, bound)
     v_hat = v_hat + dt * (a_model + sigma_hat - k_pred * err)
-    sigma_f = sigma_f + min(1.0, dt * omega) * (sigma_hat - sigma_f)
+    sigma_f = sigma_f + np.minimum(1.0, dt * omega) * (sigma_hat - sigma_f)
     return v_hat, sigma_hat, sigma_f
 
 
@@ -139,7 +140,7 @@ class FastAdaptation:
         self.s = settings
         self.g = gravity
         self.dt = 1.0 / rate_hz
-        self.omega = 2.0 * math.pi * settings.bandwidth_hz
+        self.omega = 2.0 * math.pi * np.array([settings.bandwidth_xy_hz, settings.bandwidth_xy_hz, settings.bandwidth_hz])
         n = max(1, int(round(settings.rebase_window_s * rate_hz)))
         self._buf_x = np.zeros((n, 6))
         self._buf_u = np.zeros((n, 3))

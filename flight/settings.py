@@ -13,6 +13,7 @@ class AdaptationTuning:
     """Gains and bounds of the fast adaptation layer (``cfknode.flight.adaptation.AdaptationSettings``)."""
 
     bandwidth_hz: float
+    bandwidth_xy_hz: float
     predictor_gain: float
     adaptation_gain: float
     thrust_rate: float

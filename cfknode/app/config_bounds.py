@@ -87,6 +87,7 @@ BOUNDS: dict[str, Bound] = {
     "controller.geometric_kd": _b(0, 5, "N/(m/s)"),
     # Fast adaptation: observer bandwidths well below the 400 Hz tick, estimates physically plausible.
     "controller.adaptation_settings.bandwidth_hz": _b(0, 50, "Hz", open_low=True),
+    "controller.adaptation_settings.bandwidth_xy_hz": _b(0, 50, "Hz", open_low=True),
     "controller.adaptation_settings.predictor_gain": _b(0, 1000, "1/s", open_low=True),
     "controller.adaptation_settings.adaptation_gain": _b(0, 1e5),
     "controller.adaptation_settings.thrust_rate": _b(0, 200, "1/s"),
