@@ -30,6 +30,7 @@ import numpy as np
 from cflib.crazyflie import Crazyflie
 
 from cfknode.app.backends.tx_cadence import TIME_EPS, Cadence
+from cfknode.kernel.messages import first_line
 
 if TYPE_CHECKING:
     from cfknode.kernel.setpoint import AttitudeSetpoint
@@ -359,8 +360,3 @@ def ensure_cflib_drivers() -> None:
     on every call, and the sim:// driver may already sit in front of them."""
     if not any(getattr(c, "__module__", "").startswith("cflib.") for c in cflib.crtp.CLASSES):
         cflib.crtp.init_drivers()
-
-
-def first_line(message: str) -> str:
-    lines = [line.strip() for line in str(message).splitlines() if line.strip()]
-    return lines[0] if lines else "unknown error"

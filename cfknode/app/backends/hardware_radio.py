@@ -19,7 +19,8 @@ import numpy as np
 from cflib.crazyflie import Crazyflie
 from cflib.crazyflie.log import LogConfig
 
-from cfknode.app.backends.cflib_radio import CflibRadio, RadioError, RadioStats, first_line
+from cfknode.app.backends.cflib_radio import CflibRadio, RadioError, RadioStats
+from cfknode.kernel.messages import first_line
 
 # Parameters the flight stack relies on (docs/hardware.md#extpose, #parameters): the onboard
 # Kalman filter fuses the extposes, so the firmware's yaw is the mocap's (the attitude layer
