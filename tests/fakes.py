@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -88,3 +88,15 @@ class RecordingFirmware:
 
     def power_on(self, t: float) -> None:
         self._record("power_on", t)
+
+
+def serve_sim(sim: Any, port: int) -> Iterator[tuple[Any, str]]:
+    """Serve ``sim`` at ``sim://port`` for the life of a fixture (``yield from serve_sim(...)``)."""
+    from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
+
+    uri = f"sim://{port}"
+    register_simulator(uri, sim)
+    try:
+        yield sim, uri
+    finally:
+        unregister_simulator(uri)

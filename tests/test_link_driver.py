@@ -24,7 +24,7 @@ from cfknode.sim_backend.link_driver import (
     supervisor_bitfield,
     unregister_simulator,
 )
-from fakes import RecordingFirmware
+from fakes import RecordingFirmware, serve_sim
 
 _uris = itertools.count(9100)
 
@@ -54,10 +54,7 @@ class FakeSim:
 
 @pytest.fixture
 def sim_uri() -> Iterator[tuple[FakeSim, str]]:
-    sim, uri = FakeSim(), f"sim://{next(_uris)}"
-    register_simulator(uri, sim)
-    yield sim, uri
-    unregister_simulator(uri)
+    yield from serve_sim(FakeSim(), next(_uris))
 
 
 @pytest.fixture

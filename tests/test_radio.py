@@ -13,7 +13,7 @@ from cfknode.app.config import load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.app.backends.radio import CflibRadio, HardwareRadio, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
-from fakes import RecordingFirmware
+from fakes import RecordingFirmware, serve_sim
 
 _uris = itertools.count(9300)
 
@@ -36,10 +36,7 @@ class FakeSim:
 
 @pytest.fixture
 def sim_uri() -> Iterator[tuple[FakeSim, str]]:
-    sim, uri = FakeSim(), f"sim://{next(_uris)}"
-    register_simulator(uri, sim)
-    yield sim, uri
-    unregister_simulator(uri)
+    yield from serve_sim(FakeSim(), next(_uris))
 
 
 def wait_for(predicate: Any, timeout: float = 2.0) -> bool:
