@@ -22,7 +22,7 @@ from cfknode.app.logs.writer import read_log
 from cfknode.flight.mellinger import CommandShaping, shape_force
 from cfknode.flight.mpc import TranslationalMpc, acceleration_bounds, build_qp_problem
 from cfknode.kernel.reference import RefSamples
-from cfknode.flight.online_windows import WindowRecorder
+from cfknode.flight.learning.windows import WindowRecorder
 from cfknode.app.mission import run_flight
 
 G = 9.81

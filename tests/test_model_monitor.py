@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cfknode.app.config import load_config
-from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, mean_acceleration_error
+from cfknode.flight.learning.monitor import ModelMonitor, MonitorSettings, mean_acceleration_error
 
 RATE = 400.0
 _O = load_config().online

@@ -15,7 +15,7 @@ import pytest
 from cfknode.app.config import Config, load_config
 from cfknode.app.logs.writer import check_message, read_log
 from cfknode.flight.loop import FlightRecord
-from cfknode.flight.online import OnlineLearner
+from cfknode.flight.learning.learner import OnlineLearner
 from cfknode.app.ui.summary import FlightSummary
 from cfknode.app.mission import run_flight
 

@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from cfknode.flight.online_gate import GateLimits, gate_pairs, one_step_rmse, operating_envelope, run_gate
-from cfknode.flight.online_windows import WindowRecorder
+from cfknode.flight.learning.gate import GateLimits, gate_pairs, one_step_rmse, operating_envelope, run_gate
+from cfknode.flight.learning.windows import WindowRecorder
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from fakes import Est, Tick
@@ -207,7 +207,7 @@ def test_gate_without_held_out_data_rejects() -> None:
 
 def test_flight_side_imports_no_torch() -> None:
     code = (
-        "import sys, cfknode.flight.online, cfknode.app.learning, cfknode.models.trainer_process;"
+        "import sys, cfknode.flight.learning.learner, cfknode.app.learning, cfknode.flight.learning.trainer_process;"
         "print('torch' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -10,8 +10,8 @@ import pytest
 
 from cfknode.app.config import ConfigError, load_config
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.online import OnlineLearner
-from cfknode.flight.online_latency import LatencyPolicy, applied_latency, quantise_up
+from cfknode.flight.learning.learner import OnlineLearner
+from cfknode.flight.learning.latency import LatencyPolicy, applied_latency, quantise_up
 from cfknode.app.learning import learner_settings
 from fakes import ListLog
 from test_online_learner import PERIOD, TRUE_R, Flight, ScriptedTrainer, constant_model, outcome_with

@@ -65,7 +65,7 @@ def test_the_trainer_process_ignores_stop_signals(sig):
     it stops when its parent closes it."""
     from cfknode.app.config import load_config
     from cfknode.app.learning import trainer_settings
-    from cfknode.flight.trainer_client import TrainerClient
+    from cfknode.flight.learning.trainer_client import TrainerClient
 
     client = TrainerClient(trainer_settings(load_config(overrides={"online.enabled": True})), timeout=60.0)
     client.start()

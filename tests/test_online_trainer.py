@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from cfknode.app.config import FaultInjection, load_config
-from cfknode.flight.trainer_client import TrainerClient, TrainerFault
+from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.knode import KnodeQueue, to_torch_queue
 from cfknode.models.modelfile import Normalisation
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.models.trainer_process import (
+from cfknode.flight.learning.trainer_process import (
     CRASH_EXIT_CODE,
     TrainerReady,
     TrainOutcome,

@@ -25,13 +25,13 @@ from typing import Any, Iterator
 
 from cfknode.app.config import Config, ConfigError
 from cfknode.flight.controller import Controller
-from cfknode.flight.model_monitor import MonitorSettings
+from cfknode.flight.learning.monitor import MonitorSettings
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.online import LearnerSettings, OnlineLearner
-from cfknode.flight.online_gate import GateLimits, operating_envelope
-from cfknode.flight.online_latency import LatencyPolicy
-from cfknode.flight.trainer_client import TrainerClient
-from cfknode.models.trainer_process import TrainerSettings
+from cfknode.flight.learning.learner import LearnerSettings, OnlineLearner
+from cfknode.flight.learning.gate import GateLimits, operating_envelope
+from cfknode.flight.learning.latency import LatencyPolicy
+from cfknode.flight.learning.trainer_client import TrainerClient
+from cfknode.flight.learning.trainer_process import TrainerSettings
 
 # Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
 READY_TIMEOUT_S = 120.0

@@ -20,7 +20,7 @@ from cfknode import __version__
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.flight.controller import Controller
-from cfknode.flight.trainer_client import refuse_in_spawned_import
+from cfknode.flight.learning.trainer_client import refuse_in_spawned_import
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.app.logs.writer import FlightLog
 from cfknode.flight.loop import FlightParts, FlightRecord, TickObserver, fly

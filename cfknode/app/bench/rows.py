@@ -9,7 +9,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from cfknode.flight.online_latency import LATENCY_MODES
+from cfknode.flight.learning.latency import LATENCY_MODES
 from cfknode.flight.recovery import RECOVERY_THRESHOLD_M
 
 LABELS = {

@@ -1,6 +1,6 @@
 """Online learning, flight side (the paper's Algorithm 1): the learner that ties the parts together.
 
-No torch here: the trainer is a child process (``cfknode.models.trainer_process``) and this
+No torch here: the trainer is a child process (``cfknode.flight.learning.trainer_process``) and this
 side only sends numpy windows and receives numpy ``ModelFile``s.
 
 One ``OnlineLearner`` is a loop observer. Its ``on_tick`` runs after every tick's setpoint is
@@ -46,15 +46,15 @@ from typing import Any, Callable, Generator, Protocol
 
 import numpy as np
 
-from cfknode.flight.model_monitor import ModelMonitor, MonitorSettings, MonitorVerdict
+from cfknode.flight.learning.monitor import ModelMonitor, MonitorSettings, MonitorVerdict
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.online_gate import GateLimits, GateVerdict, gate_pairs, gate_steps
-from cfknode.flight.online_latency import LatencyPolicy, applied_latency
-from cfknode.flight.online_windows import TickLike, WindowRecorder
-from cfknode.flight.trainer_client import TrainerClient, TrainerFault
+from cfknode.flight.learning.gate import GateLimits, GateVerdict, gate_pairs, gate_steps
+from cfknode.flight.learning.latency import LatencyPolicy, applied_latency
+from cfknode.flight.learning.windows import TickLike, WindowRecorder
+from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.models.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
+from cfknode.flight.learning.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
 
 
 class Log(Protocol):
