@@ -41,15 +41,14 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Any, Callable, Generator, Protocol
+from typing import Any, Callable, Generator
 
 import numpy as np
 
-from cfknode.flight.learning.monitor import ModelMonitor, MonitorSettings, MonitorVerdict
+from cfknode.flight.learning.monitor import ModelMonitor, MonitorVerdict
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.learning.gate import GateLimits, GateVerdict, gate_pairs, gate_steps
-from cfknode.flight.learning.latency import LatencyPolicy, applied_latency
+from cfknode.flight.learning.gate import GateVerdict, gate_pairs, gate_steps
+from cfknode.flight.learning.latency import applied_latency
 from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
@@ -57,144 +56,24 @@ from cfknode.models.residual_np import ResidualQueue
 from cfknode.flight.learning.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
 
 
-class Log(Protocol):
-    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
+from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the app and tests use them)
+    LearnerSettings,
+    Log,
+    OnlineStats,
+    RoundRecord,
+    SwapEvent,
+    _ENDING_STATES,
+    _Flying,
+    _Gating,
+    _Held,
+    _Outstanding,
+    _PaceFrom,
+    _Watch,
+)
+from cfknode.flight.learning.reports import LearnerReports
 
 
-# Supervisor states in which the flight is ending (landing, landed, stopped or refused).
-_ENDING_STATES = frozenset({"LAND", "LANDED", "EMERGENCY", "IDLE"})
-
-
-@dataclass(frozen=True)
-class LearnerSettings:
-    t_col: float
-    period: float  # s between ticks
-    lockstep: bool  # flight clock is the simulator's (pace honest latency)
-    paper_lockstep: bool
-    gate: bool
-    gate_min_pairs: int
-    replay_windows: int
-    start_time: float
-    rollback_ticks: int
-    rollback_fallbacks: int
-    max_restarts: int
-    limits: GateLimits
-    filter_hz: float  # training.velocity_filter_hz
-    holdout_fraction: float  # training.validation_fraction: the tail the paper-lockstep gate judges on
-    queue_size: int  # knode.queue_size
-    monitor: MonitorSettings | None = None  # drop a flying model the world changed under (None: never)
-    ground_z: float | None = None  # the floor's height: ticks near it are not learned from (None: no floor)
-    latency: LatencyPolicy = LatencyPolicy()  # lockstep only: the delay a model is applied with (online_latency.py)
-
-
-@dataclass(frozen=True)
-class RoundRecord:
-    """One training round as the flight saw it."""
-
-    round: int
-    version: int
-    window: tuple[float, float]
-    sent_t: float  # flight time the request was sent
-    latency_s: float  # s from send to the earliest swap: the wall round trip, or the latency policy's delay
-    train_wall_s: float  # the trainer's own wall time for the round
-    train_cpu_s: float
-    loss: float
-    outcome: str  # "swap" | "reject" | "failed" | "lost" (crash/hang/unfinished)
-    reason: str = ""
-    applied_t: float = math.nan  # flight time of the swap (the next tick flies it)
-    received_t: float = math.nan  # flight time the result arrived
-    rmse_candidate: float = math.nan
-    rmse_current: float = math.nan
-
-
-@dataclass(frozen=True)
-class SwapEvent:
-    t: float  # on_tick time of the swap; ticks after t fly the new model
-    version: int
-    swap_s: float  # the slot write (a reference assignment)
-    install_s: float  # fold the file into numpy stacks + gate + swap, spread over tick gaps
-    max_slice_s: float  # the longest of those slices: what one tick gap had to absorb
-    kind: str  # "swap" | "rollback" | "drop"
-
-
-@dataclass
-class _Outstanding:
-    request: TrainRequest
-    sent_t: float
-    sent_wall: float
-
-
-@dataclass(frozen=True)
-class _PaceFrom:
-    """While the trainer works (a round or a restart), flight time may not outrun the wall time since this point."""
-
-    t: float
-    wall: float
-
-
-@dataclass
-class _Held:
-    outcome: TrainOutcome
-    window: Window  # the window it trained on
-    received_t: float
-    sent_t: float
-    latency_s: float  # observed wall round trip
-    apply_at: float  # earliest flight time the next tick may fly it
-
-
-@dataclass
-class _Gating:
-    """A candidate going through the gate, one slice per tick gap."""
-
-    held: _Held
-    candidate: ResidualQueue | None  # set by the first slice
-    steps: Generator[None, None, GateVerdict]
-    work_s: float  # wall time of the slices so far (fold and filtering included)
-    max_slice_s: float
-
-
-@dataclass
-class _Flying:
-    """The model in the slot, with what rollback and the next round need."""
-
-    model: Any | None
-    version: int
-    file: ModelFile | None
-    queue: tuple[int, ...]  # versions of its networks, oldest first
-
-
-@dataclass
-class _Watch:
-    previous: _Flying
-    version: int
-    ticks_left: int
-    fallbacks: int = 0
-
-
-@dataclass
-class OnlineStats:
-    rounds_sent: int = 0
-    rounds_trained: int = 0
-    rounds_failed: int = 0
-    accepted: int = 0
-    rejected: int = 0
-    rollbacks: int = 0
-    drops: int = 0  # flying models the monitor replaced by nominal
-    crashes: int = 0
-    hangs: int = 0
-    restarts: int = 0
-    windows_superseded: int = 0  # finished windows replaced by a newer one before being sent
-    windows_stale: int = 0  # finished windows dropped because the model changed before they were sent
-    pace_wait_s: float = 0.0  # wall time spent holding the simulation back for honest latency
-    max_slice_s: float = 0.0  # longest gate/swap slice between two ticks
-    late_ticks: int = 0  # ticks whose compute plus the learner's install work before them exceeded the period
-    swap_s: list[float] = field(default_factory=list)
-    install_s: list[float] = field(default_factory=list)
-    train_wall_s: list[float] = field(default_factory=list)
-    latency_s: list[float] = field(default_factory=list)
-
-
-class OnlineLearner:
+class OnlineLearner(LearnerReports):
     """The flight side of online learning: a ``TickObserver`` (see the module docstring)."""
 
     def __init__(
@@ -594,107 +473,11 @@ class OnlineLearner:
         while self._gating is not None:  # the simulation waits anyway: the whole gate at once
             self._step_gate(t)
 
-    # --- logging and summary -----------------------------------------------------------------
-
-    def _record(self, out: TrainOutcome, sent_t: float, latency: float, outcome: str, reason: str,
-                applied_t: float = math.nan, verdict: GateVerdict | None = None, received_t: float = math.nan) -> None:
-        self.rounds.append(RoundRecord(
-            out.round, out.version, (out.window_t0, out.window_t1), sent_t, latency, out.wall_s, out.cpu_s, out.loss,
-            outcome, reason, applied_t, received_t,
-            verdict.rmse_candidate if verdict else math.nan, verdict.rmse_current if verdict else math.nan,
-        ))
-
-    def _log_model(self, t: float, version: int, event: str, reason: str = "", out: TrainOutcome | None = None,
-                   latency: float = math.nan, verdict: GateVerdict | None = None, swap_s: float = math.nan,
-                   install_s: float = math.nan, slice_s: float = math.nan) -> None:
-        msg: dict[str, Any] = {"version": version, "event": event, "queue": list(self._flying.queue)}
-        if reason:
-            msg["reason"] = reason
-        if out is not None:
-            msg.update(round=out.round, window=[out.window_t0, out.window_t1], loss=out.loss,
-                       train_wall_s=out.wall_s, latency_s=latency)
-        if verdict is not None:
-            msg.update(val_error=verdict.rmse_candidate, val_error_current=verdict.rmse_current,
-                       val_error_nominal=verdict.rmse_nominal, max_residual=verdict.max_residual,
-                       val_pairs=verdict.pairs, control_gain=list(verdict.control_gain),
-                       velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain)
-        if math.isfinite(swap_s):
-            msg["swap_ms"] = 1e3 * swap_s
-        if math.isfinite(install_s):
-            msg["install_ms"] = 1e3 * install_s
-        if math.isfinite(slice_s):
-            msg["slice_ms"] = 1e3 * slice_s
-        self.log.write("/model", t, msg)
-
-    def _log_training(self, t: float, out: TrainOutcome, latency: float) -> None:
-        self.log.write("/training", t, {
-            "round": out.round, "version": out.version, "base_version": out.base_version,
-            "window": [out.window_t0, out.window_t1], "pairs": out.pairs, "loss": out.loss,
-            "val_rmse_model": out.val_rmse_model, "val_rmse_nominal": out.val_rmse_nominal,
-            "max_abs_residual": out.max_abs_residual, "train_wall_s": out.wall_s, "train_cpu_s": out.cpu_s,
-            "latency_s": latency, "t_col": self.s.t_col, "ok": out.model is not None, "error": out.error,
-        })
-
-    def _log_event(self, t: float, level: str, text: str) -> None:
-        self.log.write("/events", t, {"level": level, "text": text, "source": "online"})
-
-    def inject_trainer_crash(self) -> None:
-        """Kill the trainer now (for fault scenarios); the learner sees a crash and restarts it."""
-        self.client.kill()
-
-    def summary_fields(self) -> dict[str, Any]:
-        """What the flight summary reports about online learning (flat, JSON-safe)."""
-        s = self.stats
-        mode = "paper-lockstep (reproduction only: the simulation waits for every model)" if self.s.paper_lockstep \
-            else (f"honest latency (lockstep, {self.s.latency.describe()})" if self.s.lockstep else "real time")
-        walls = np.asarray(s.train_wall_s)
-        return {
-            "online_mode": mode,
-            "online_t_col_s": self.s.t_col,
-            "online_latency": (self.s.latency.mode if self.s.lockstep and not self.s.paper_lockstep
-                               else ("paper" if self.s.paper_lockstep else "wall")),
-            "models_trained": s.rounds_trained,
-            "models_accepted": s.accepted,
-            "models_rejected": s.rejected,
-            "models_rolled_back": s.rollbacks,
-            "models_dropped": s.drops,
-            "training_failed": s.rounds_failed,
-            "models_undecided": int(self._held is not None) + int(self._gating is not None),  # when the flight ended
-            "rounds_in_flight": int(self._out is not None),
-            "trainer_crashes": s.crashes,
-            "trainer_hangs": s.hangs,
-            "trainer_restarts": s.restarts,
-            "trainer_failed": self.failed,
-            "windows_completed": self.recorder.windows,
-            "windows_sent": s.rounds_sent,
-            "windows_superseded": s.windows_superseded,
-            "windows_stale": s.windows_stale,
-            "partial_windows_discarded": self.recorder.discarded,
-            "swap_median_ms": _ms(np.median(s.swap_s)) if s.swap_s else None,
-            "swap_max_ms": _ms(max(s.swap_s)) if s.swap_s else None,
-            "install_median_ms": _ms(np.median(s.install_s)) if s.install_s else None,
-            "install_max_ms": _ms(max(s.install_s)) if s.install_s else None,
-            "install_slice_max_ms": _ms(s.max_slice_s) if s.install_s else None,
-            "ticks_late_from_install": s.late_ticks,
-            "train_wall_median_s": float(np.median(walls)) if walls.size else None,
-            "train_wall_max_s": float(walls.max()) if walls.size else None,
-            "train_wall_over_t_col": float(np.median(walls)) / self.s.t_col if walls.size else None,
-            "rounds_slower_than_t_col": int((walls > self.s.t_col).sum()),
-            "latency_median_s": float(np.median(s.latency_s)) if s.latency_s else None,
-            "latency_max_s": float(max(s.latency_s)) if s.latency_s else None,
-            "pace_wait_s": s.pace_wait_s,
-            "final_model_version": self._flying.version,
-        }
-
 
 def _tail(out: TrainOutcome, window: Window) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The part of the training window the trainer held out (samples from its last training sample on)."""
     k = int(np.searchsorted(window.t, out.train_t1 - 1e-9))
     return window.t[k:], window.x[k:], window.u[k:]
-
-
-def _ms(seconds: float) -> float:
-    return 1e3 * float(seconds)
 
 
 __all__ = ["LearnerSettings", "OnlineLearner", "OnlineStats", "RoundRecord", "SwapEvent"]
