@@ -1,5 +1,5 @@
 """The hardware backend (``--backend cf``): a robot from the robots file, its mocap, its radio,
-the pre-flight checks, and the flight clock, the counterpart of ``mission._sim_backend``.
+the pre-flight checks, and the flight clock; ``CrazyflieBackend`` is the counterpart of ``sim.SimulatorBackend``.
 
 ``hardware_backend(cfg)`` connects the mocap (``motioncapture``, with a deadline) and the
 radio (cflib: parameters, telemetry, heartbeat), lets both stream for
