@@ -25,14 +25,10 @@ from cfknode.flight.trajectory import make_trajectory
 from cfknode.kernel.reference import Reference, RefSamples
 
 
-class RotatedReference:
-    """``inner`` rotated by ``angle`` (rad) about the vertical axis through ``center`` (x, y)."""
+class _Wrapped:
+    """A reference with the span and segments of ``_inner``."""
 
-    def __init__(self, inner: Reference, center: Sequence[float], angle: float) -> None:
-        self._inner = inner
-        self._c = np.array([center[0], center[1], 0.0])
-        c, s = math.cos(angle), math.sin(angle)
-        self._r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    _inner: Reference
 
     @property
     def duration(self) -> float:
@@ -46,6 +42,16 @@ class RotatedReference:
     def pattern_window(self) -> tuple[float, float]:
         return self._inner.segments["pattern"]
 
+
+class RotatedReference(_Wrapped):
+    """``inner`` rotated by ``angle`` (rad) about the vertical axis through ``center`` (x, y)."""
+
+    def __init__(self, inner: Reference, center: Sequence[float], angle: float) -> None:
+        self._inner = inner
+        self._c = np.array([center[0], center[1], 0.0])
+        c, s = math.cos(angle), math.sin(angle)
+        self._r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
     @property
     def final_position(self) -> np.ndarray:
         return self._c + self._r @ (self._inner.final_position - self._c)
@@ -56,7 +62,7 @@ class RotatedReference:
         return RefSamples(t=ref.t, p=(ref.p - self._c) @ rt + self._c, v=ref.v @ rt, a=ref.a @ rt, yaw=ref.yaw)
 
 
-class HoldableReference:
+class HoldableReference(_Wrapped):
     """``inner``, until ``hold(t, p)``: from then on, hover at ``p`` (zero velocity and acceleration)."""
 
     def __init__(self, inner: Reference) -> None:
@@ -70,18 +76,6 @@ class HoldableReference:
     @property
     def held_since(self) -> float | None:
         return None if self._hold is None else self._hold[0]
-
-    @property
-    def duration(self) -> float:
-        return self._inner.duration
-
-    @property
-    def segments(self) -> Mapping[str, tuple[float, float]]:
-        return self._inner.segments
-
-    @property
-    def pattern_window(self) -> tuple[float, float]:
-        return self._inner.segments["pattern"]
 
     @property
     def final_position(self) -> np.ndarray:

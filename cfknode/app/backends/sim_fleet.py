@@ -16,49 +16,26 @@ import contextlib
 import dataclasses
 from typing import Any, Iterator, Sequence
 
-import numpy as np
 
 from cfknode.app.backends.radio import CflibRadio
-from cfknode.app.backends.sim import vehicle_after
+from cfknode.app.backends.sim import SimulatorBackend, vehicle_after
 from cfknode.app.config import Config, ConfigError
 from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.kernel.fleet_clock import FleetClock, MemberClock
-from cfknode.kernel.link import LinkStatus
 from cfknode.mocap.simulated import SimulatedMocap
-from cfknode.safety.watchdogs import radio_link_status, worst_link
 from cfknode.sim_backend.crazyflie import SimCrazyflie
 from cfknode.sim_backend.faults import SimFaults, install_faults
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
 from cfknode.sim_backend.world import SimWorld
 
 
-class FleetDrone:
-    """One drone of the fleet as its flight sees it: the ``Backend`` protocol."""
-
-    events: tuple[dict[str, Any], ...] = ()
+class FleetDrone(SimulatorBackend):
+    """One drone of the fleet as its flight sees it: the simulator backend on a member clock of the world."""
 
     def __init__(self, name: str, cfg: Config, sim: SimCrazyflie, faults: SimFaults, mocap: SimulatedMocap,
                  clock: MemberClock, radio: CflibRadio) -> None:
-        self.name, self.config, self.sim, self.faults = name, cfg, sim, faults
-        self.mocap, self.clock, self.radio = mocap, clock, radio
-        self.start_position = np.asarray(cfg.sim.initial_position, dtype=float)
-        link = radio_link_status(radio)
-        self._link = worst_link(link, faults.link_status) if faults.link_status is not None else link
-
-    def truth(self) -> np.ndarray:
-        return self.sim.state
-
-    def battery_voltage(self) -> float | None:
-        return self.sim.battery_voltage
-
-    def link_status(self, now: float) -> LinkStatus:
-        return self._link(now)
-
-    def wrap_solver(self, solver: Any) -> Any:
-        return self.faults.controller(solver, self.clock.now)
-
-    def fault_observers(self, model: Any) -> list[Any]:
-        return self.faults.observers(model)
+        super().__init__(cfg, sim, faults, mocap, clock, radio)  # type: ignore[arg-type]
+        self.name = name
 
     def after_handback(self) -> dict[str, Any]:
         # The world (not this drone alone) runs on past the hand-back, so every drone stays in step.
