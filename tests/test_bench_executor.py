@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from cfknode.app.bench.executor import ExecutorSettings, run_ordered, run_tasks
-from cfknode.app.bench.paper.protocol import MassEvent
-from cfknode.app.bench.paper.suite import BenchPlan, Cell
-from cfknode.app.cli import main
+
+# Spawned workers import this module for its task functions: the bench's heavy modules (torch,
+# casadi) are imported inside the tests that need them.
 
 TASKS = list(range(6))
 
@@ -84,6 +84,8 @@ def test_ray_reruns_the_task_of_a_dead_worker(ray_cluster, tmp_path):
 
 
 def test_executor_options_are_checked(monkeypatch, tmp_path, capsys):
+    from cfknode.app.cli import main
+
     assert main(["bench", "paper", "--address", "127.0.0.1:6379", "--out", str(tmp_path)]) == 2
     assert "--address needs --executor ray" in capsys.readouterr().err
     real_find_spec = importlib.util.find_spec
@@ -95,7 +97,10 @@ def test_executor_options_are_checked(monkeypatch, tmp_path, capsys):
     assert not (tmp_path / "x").exists()  # refused before anything was written
 
 
-def _tiny_quick(formulations: tuple[str, ...], seed: int = 0) -> BenchPlan:
+def _tiny_quick(formulations: tuple[str, ...], seed: int = 0):  # noqa: ANN202 - a BenchPlan
+    from cfknode.app.bench.paper.protocol import MassEvent
+    from cfknode.app.bench.paper.suite import BenchPlan, Cell
+
     # --quick takes minutes on a loaded two-core machine; this keeps every path of the plan
     # (an offline model, a run that waits for it, one that does not) at 1.5 s simulated.
     return BenchPlan(formulations=formulations, cells=(Cell(2.0, 0.8),), controllers=("geometric", "knode_offline"),
@@ -103,6 +108,8 @@ def _tiny_quick(formulations: tuple[str, ...], seed: int = 0) -> BenchPlan:
 
 
 def _bench(out: Path, *flags: str) -> tuple[dict, list[str]]:
+    from cfknode.app.cli import main
+
     argv = ["bench", "paper", "--quick", "--formulation", "paper", "--out", str(out), *flags]
     assert main(argv) == 0
     data = json.loads((out / "paper_full_quick.json").read_text())
@@ -111,6 +118,8 @@ def _bench(out: Path, *flags: str) -> tuple[dict, list[str]]:
 
 
 def test_bench_paper_prints_the_same_table_on_ray(ray_cluster, tmp_path, monkeypatch):
+    from cfknode.app.bench.paper.suite import BenchPlan
+
     monkeypatch.setattr(BenchPlan, "quick", classmethod(lambda cls, forms, seed=0: _tiny_quick(forms, seed)))
     local, local_rows = _bench(tmp_path / "local", "--jobs", "2")
     monkeypatch.setenv("RAY_ADDRESS", ray_cluster)  # the cluster is found through the environment
