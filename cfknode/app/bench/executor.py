@@ -105,7 +105,7 @@ def add_executor_arguments(p: argparse.ArgumentParser, jobs: int = 2, jobs_help:
 class _Backend(Protocol):
     def submit(self, fn: Callable[[Any], Any], task: Any, key: int) -> None: ...
     def next_done(self) -> tuple[int, Any]: ...
-    def close(self) -> None: ...
+    def close(self, abort: bool) -> None: ...
 
 
 class _Inline:
@@ -121,7 +121,7 @@ class _Inline:
         fn, task, key = self._queue.pop(0)
         return key, fn(task)
 
-    def close(self) -> None:
+    def close(self, abort: bool) -> None:
         self._queue.clear()
 
 
@@ -174,8 +174,9 @@ class _LocalPool:
                 raise RuntimeError(f"task {key} lost its worker process {self._attempts[key]} time(s); giving up")
             self.submit(fn, task, key)
 
-    def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+    def close(self, abort: bool) -> None:
+        # After an error or ^C, do not wait for the tasks still running.
+        self._pool.shutdown(wait=not abort, cancel_futures=True)
 
 
 def _call(fn: Callable[[Any], Any], task: Any) -> Any:
@@ -208,7 +209,7 @@ class _Ray:
         key = self._running.pop(ref)
         return key, self._ray.get(ref)
 
-    def close(self) -> None:
+    def close(self, abort: bool) -> None:
         for ref in self._running:
             self._ray.cancel(ref, force=True)
         self._running.clear()
@@ -256,7 +257,7 @@ class Runner:
         if self._bar is not None:
             self._bar.stop()
         if self._backend is not None:
-            self._backend.close()
+            self._backend.close(abort=exc is not None)
 
     def submit(self, fn: Callable[[Any], Any], task: Any, key: int | None = None) -> int:
         """Queue ``fn(task)``; returns its key (``key``, or the next number)."""
