@@ -14,9 +14,7 @@ circle is outside a lab fence); every run is seeded.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
 import json
-import multiprocessing
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -86,6 +84,11 @@ def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: s
     return CellResult(radius, speed, mse, mse_z, outcome, online, time.perf_counter() - start, recovery)
 
 
+def run_cell_job(job: tuple[float, float, float, int, str, dict[str, Any]]) -> CellResult:
+    """``run_cell`` on one argument, as the bench executor calls its tasks."""
+    return run_cell(*job)
+
+
 def markdown(results: list[CellResult], command: str, version: str, latency_note: str = "") -> str:
     from cfknode.app.bench.rows import LABELS, peak_text, recovery_legend, recovery_text, summary_lines
 
@@ -118,29 +121,23 @@ def markdown(results: list[CellResult], command: str, version: str, latency_note
 
 def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from cfknode.app.bench.executor import ExecutorSettings, run_ordered
     from cfknode.app.bench.rows import check_latency_arguments, latency_flags, latency_note, latency_overrides
 
     check_latency_arguments(args)
+    executor = ExecutorSettings.from_args(args)
     cells = CELLS[:1] if args.quick else parse_cells(getattr(args, "cells", None))
     duration = 4.0 if args.quick else 8.0
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-", dir=out))
-    command = (f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} --jobs {args.jobs} "
+    command = (f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} {executor.command_flags()} "
                f"--seed {args.seed}{latency_flags(args)}" + (f" --cells {args.cells}" if getattr(args, "cells", None) else ""))
     console = Console()
-    results: list[CellResult] = []
-    ctx = multiprocessing.get_context("spawn")
-    with Progress(TextColumn("[bold]bench hierarchical"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.fields[last]}"), console=console) as bar, \
-            cf.ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
-        task = bar.add_task("cells", total=len(cells), last="")
-        futures = [pool.submit(run_cell, r, v, duration, args.seed, str(logs), latency_overrides(args)) for r, v in cells]
-        for fut in cf.as_completed(futures):
-            res = fut.result()
-            results.append(res)
-            bar.update(task, advance=1, last=f"r={res.radius:g} v={res.speed:g}: online {res.mse['online']:.4f}")
+    jobs = [(r, v, duration, args.seed, str(logs), latency_overrides(args)) for r, v in cells]
+    results: list[CellResult] = run_ordered(
+        run_cell_job, jobs, executor, "bench hierarchical", console=console,
+        describe=lambda i, res: f"r={res.radius:g} v={res.speed:g}: online {res.mse['online']:.4f}")
     results.sort(key=lambda r: (r.radius, r.speed))
     md = markdown(results, command, version, latency_note(args))
     stem = "paper_hierarchical" + ("_quick" if args.quick else "")

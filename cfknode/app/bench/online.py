@@ -227,8 +227,16 @@ def run_online(args: Any, version: str) -> int:
     cells = (QUICK,) if args.quick else (LAB, PAPER, LAB_SMALL)
     seeds = (0,) if args.quick else tuple(range(args.seeds))
     command = "cfknode bench online" + (" --quick" if args.quick else f" --seeds {args.seeds}") + latency_flags(args)
-    reports = [run_cell(c, seeds, logs, progress=lambda text: console.print(f"[dim]{text}[/]"),
-                        latency=latency_overrides(args)) for c in cells]
+    from functools import partial
+
+    from cfknode.app.bench.executor import ExecutorSettings, run_ordered
+
+    # A cell's flights and its trainer: two CPUs each on Ray; one cell at a time by default.
+    executor = ExecutorSettings.from_args(args, cpus_per_task=2, default_jobs=1)
+    note = (lambda text: console.print(f"[dim]{text}[/]")) if executor.runs_here else None
+    reports = run_ordered(partial(run_cell, seeds=seeds, out=logs, progress=note, latency=latency_overrides(args)), cells,
+                          executor, "bench online", describe=lambda i, rep: f"{rep.cell.name}: {rep.wall_s:.0f} s",
+                          console=console)
     md = markdown(reports, command, version, latency_note(args))
     stem = "online" + ("_quick" if args.quick else "")
     (out / f"{stem}.md").write_text(md + "\n")

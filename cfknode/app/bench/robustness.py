@@ -18,10 +18,8 @@ variant (an oracle, say) is one more entry.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
 import json
 import math
-import multiprocessing
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -287,7 +285,9 @@ def markdown(results: list[RunResult], controllers: tuple[str, ...], command: st
 def add_robustness_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help=f"{len(QUICK_CELLS)} cells on a 4 s lab circle: a smoke test (< 2 min)")
-    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    from cfknode.app.bench.executor import add_executor_arguments
+
+    add_executor_arguments(p, 2, "")
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cells", default="", help="comma-separated cell names to fly (default: all, or the quick set)")
@@ -308,16 +308,21 @@ def _select(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
     return names
 
 
+def run_one_job(job: tuple[Any, ...]) -> RunResult:
+    """``run_one`` on one argument, as the bench executor calls its tasks."""
+    return run_one(*job)
+
+
 def run_robustness(args: argparse.Namespace, version: str) -> int:
     from dataclasses import replace
 
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from cfknode.app.cli import UsageError
 
-    if args.jobs < 1:
-        raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
+    from cfknode.app.bench.executor import ExecutorSettings, run_ordered
+
+    executor = ExecutorSettings.from_args(args)  # bad --jobs, --address or a missing Ray: before anything runs
     if args.duration < 0:
         raise UsageError(f"--duration must be >= 0, got {args.duration}")
     out = Path(args.out)
@@ -334,7 +339,7 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
     if duration:
         patterns = tuple(replace(p, duration=duration) for p in patterns)
     mode = "quick" if args.quick else "full"
-    command = "cfknode bench robustness" + (" --quick" if args.quick else "") + f" --jobs {args.jobs} --seed {args.seed}"
+    command = "cfknode bench robustness" + (" --quick" if args.quick else "") + f" {executor.command_flags()} --seed {args.seed}"
     for flag, value in (("--cells", args.cells), ("--controllers", args.controllers), ("--patterns", args.patterns)):
         if value:
             command += f" {flag} '{value}'"
@@ -345,18 +350,11 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
     tasks = [(cell, pat, c) for cell in cells for pat in patterns for c in controllers]
     console = Console()
     console.print(f"bench robustness: {len(cells)} cell(s) x {len(patterns)} pattern(s) x {len(controllers)} "
-                  f"controller(s) = {len(tasks)} flights on {args.jobs} process(es)")
-    results: list[RunResult] = []
-    ctx = multiprocessing.get_context("spawn")
-    with Progress(TextColumn("[bold]bench robustness"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.fields[last]}"), console=console) as bar, \
-            cf.ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
-        task = bar.add_task("flights", total=len(tasks), last="")
-        futures = [pool.submit(run_one, cell, pat, c, args.seed, str(logs)) for cell, pat, c in tasks]
-        for fut in cf.as_completed(futures):
-            res = fut.result()
-            results.append(res)
-            bar.update(task, advance=1, last=f"{res.cell} / {res.pattern} / {res.controller}: {res.mse:.3g} {_flags(res)}")
+                  f"controller(s) = {len(tasks)} flights")
+    jobs = [(cell, pat, c, args.seed, str(logs)) for cell, pat, c in tasks]
+    results: list[RunResult] = run_ordered(
+        run_one_job, jobs, executor, "bench robustness", console=console,
+        describe=lambda i, res: f"{res.cell} / {res.pattern} / {res.controller}: {res.mse:.3g} {_flags(res)}")
     order = {(cell.name, pat.name, c): i for i, (cell, pat, c) in enumerate(tasks)}
     results.sort(key=lambda r: order[(r.cell, r.pattern, r.controller)])
     md = markdown(results, controllers, command, version, mode, patterns)

@@ -3,6 +3,11 @@
 Each benchmark is an entry of ``BENCHES`` (name -> help, argument setup, runner), and the
 paper benchmark's modes are entries of ``PAPER_MODES``: ``bench timing`` and
 ``--mode hierarchical`` are additions there, not edits of what exists.
+
+A benchmark of independent seeded tasks gets ``--jobs``, ``--executor {local,ray}`` and
+``--address`` from ``_add_executor_arguments(p)``, and runs its tasks (a module-level function of
+one picklable argument) with ``cfknode.app.bench.executor.run_ordered(fn, tasks,
+ExecutorSettings.from_args(args))``, on local processes or Ray alike.
 """
 
 from __future__ import annotations
@@ -43,18 +48,25 @@ def _add_paper_arguments(p: argparse.ArgumentParser) -> None:
         help="paper: the authors' code; default: cfknode's; both (default)",
     )
     p.add_argument("--quick", action="store_true", help="one cell, 3.5 s: a smoke test of every path (< 1 min)")
-    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cells", metavar="R:V,...", help="hierarchical mode: only these of the paper's cells, e.g. 2:0.8,3:1.0")
     from cfknode.app.bench.rows import add_latency_arguments
 
     add_latency_arguments(p)  # hierarchical mode's online rows
+    _add_executor_arguments(p)
+
+
+def _add_executor_arguments(p: argparse.ArgumentParser, jobs: int = 2, jobs_help: str = "") -> None:
+    from cfknode.app.bench.executor import add_executor_arguments
+
+    add_executor_arguments(p, jobs, jobs_help)
 
 
 def _run_paper(args: argparse.Namespace) -> int:
-    if args.jobs < 1:
-        raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
+    from cfknode.app.bench.executor import ExecutorSettings
+
+    ExecutorSettings.from_args(args)  # bad --jobs, --address or a missing Ray: before anything runs
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is not a directory")
@@ -63,33 +75,23 @@ def _run_paper(args: argparse.Namespace) -> int:
 
 def _paper_full(args: argparse.Namespace, out: Path) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from cfknode.app.bench.executor import ExecutorSettings
     from cfknode.app.bench.paper import report
     from cfknode.app.bench.paper.suite import BenchPlan, Cell, run_plan
 
     forms = ("paper", "default") if args.formulation == "both" else (args.formulation,)
     plan = BenchPlan.quick(forms, args.seed) if args.quick else BenchPlan.full(forms, args.seed)
+    executor = ExecutorSettings.from_args(args)
     console = Console()
     out.mkdir(parents=True, exist_ok=True)
     command = (
         f"cfknode bench paper --mode {args.mode} --formulation {args.formulation}"
-        + (" --quick" if args.quick else "") + f" --jobs {args.jobs} --seed {args.seed}"
+        + (" --quick" if args.quick else "") + f" {executor.command_flags()} --seed {args.seed}"
     )
-    n_tasks = len(plan.tasks())
     console.print(f"bench paper --mode {args.mode}: {len(plan.cells)} cell(s) x {len(forms)} formulation(s), "
-                  f"{n_tasks} tasks on {args.jobs} process(es)")
-    with Progress(
-        TextColumn("[bold]bench paper"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        TextColumn("{task.fields[last]}"), console=console,
-    ) as bar:
-        task_id = bar.add_task("bench", total=n_tasks, last="")
-
-        def done(task, result) -> None:  # noqa: ANN001 - (Task, RunResult | OfflineInfo)
-            mse = getattr(result, "mse", None)
-            bar.update(task_id, advance=1, last=task.label + (f": {mse:.4f}" if mse is not None else ""))
-
-        results = run_plan(plan, jobs=args.jobs, on_done=done)
+                  f"{len(plan.tasks())} tasks on {executor.describe()}")
+    results = run_plan(plan, executor, progress=True, console=console)
     version = _version()
     md = report.markdown(results, version, command)
     stem = f"paper_{args.mode}" + ("_quick" if args.quick else "")
@@ -133,10 +135,16 @@ def _add_online_arguments(p: argparse.ArgumentParser) -> None:
     from cfknode.app.bench.online import add_online_arguments
 
     add_online_arguments(p)
+    # One cell at a time by default: a flight beside another would slow its trainer and so change
+    # what is measured; on Ray each cell reserves two CPUs (the flight and its trainer).
+    _add_executor_arguments(p, jobs=1, jobs_help="cells at once (default 1: one after another, in this process)")
 
 
 def _run_online(args: argparse.Namespace) -> int:
+    from cfknode.app.bench.executor import ExecutorSettings
     from cfknode.app.bench.online import run_online
+
+    ExecutorSettings.from_args(args, default_jobs=1)  # bad --jobs, --address or a missing Ray: before anything runs
 
     return run_online(args, _version())
 

@@ -60,7 +60,7 @@ def markdown(results: BenchResults, version: str, command: str) -> str:
     cells = plan.cells
     out = [
         f"Command: `{command}`  ",
-        f"cfknode {version}; {len(results.runs)} runs on {results.jobs} worker process(es), "
+        f"cfknode {version}; {len(results.runs)} runs on {results.where}, "
         f"{results.wall_time / 60:.1f} min wall.  MSE in m^2 (mean over all samples and the 3 axes).",
         "",
     ]
@@ -200,6 +200,7 @@ def to_json(results: BenchResults, version: str, command: str) -> dict[str, Any]
         },
         "wall_time_s": results.wall_time,
         "jobs": results.jobs,
+        "executor": results.where,
         "improvement_percent": {f: improvements(results, f) for f in plan.formulations},
         "offline_models": [
             {"formulation": k[0], "radius": k[1], "speed": k[2], "data_run_wall_s": v.data_run_wall, "train_wall_s": v.train_wall}

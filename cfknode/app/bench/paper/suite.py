@@ -2,19 +2,18 @@
 
 A plan is formulations x cells x controllers.  Every (formulation, cell, controller) is one
 task; the offline KNODE-MPC and (in the paper formulation, whose online queue starts from
-it) KNODE-MPC-Online wait for that cell's offline-model task.  Tasks run in a
-``ProcessPoolExecutor`` with the spawn start method, one thread each, and every task
-carries its own seed, so results do not depend on the schedule.
+it) KNODE-MPC-Online wait for that cell's offline-model task.  Tasks run on the bench
+executor (``cfknode.app.bench.executor``: local spawned processes or Ray, one thread each), and
+every task carries its own seed, so results do not depend on the schedule or the machine.
 """
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import multiprocessing
-import os
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Any, Callable
+
+from cfknode.app.bench.executor import ExecutorSettings, open_runner
 
 from cfknode.app.bench.paper.rigid_body_knode import QueueWeights
 from cfknode.app.bench.paper.controllers import CONTROLLERS, Formulation
@@ -117,6 +116,7 @@ class BenchResults:
     offline: dict[tuple[str, float, float], OfflineInfo] = field(default_factory=dict)
     wall_time: float = 0.0
     jobs: int = 1
+    where: str = "this process"  # the executor, as the report names it
 
     def get(self, formulation: str, cell: Cell, controller: str) -> RunResult | None:
         for r in self.runs:
@@ -145,6 +145,11 @@ def execute(plan: BenchPlan, task: Task, offline: QueueWeights | None) -> RunRes
     return result
 
 
+def execute_job(job: tuple[BenchPlan, Task, QueueWeights | None]) -> RunResult | OfflineInfo:
+    """``execute`` on one argument, as the executor calls its tasks."""
+    return execute(*job)
+
+
 def _single_thread() -> None:
     # One thread per worker: two workers share two cores, and torch's or BLAS's own threads on
     # top oversubscribed them (training rounds up to 80x slower, docs/solver-timings.md#training).
@@ -153,51 +158,48 @@ def _single_thread() -> None:
     torch.set_num_threads(1)
 
 
+def _describe(task: Task, out: RunResult | OfflineInfo) -> str:
+    mse = getattr(out, "mse", None)
+    return task.label + (f": {mse:.4f}" if mse is not None else "")
+
+
 def run_plan(
     plan: BenchPlan,
-    jobs: int = 2,
+    executor: ExecutorSettings | None = None,
     on_done: Callable[[Task, RunResult | OfflineInfo], None] | None = None,
+    progress: bool = False,
+    console: Any = None,
 ) -> BenchResults:
-    """Run every task of ``plan`` on ``jobs`` processes (1: in this process, in order)."""
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")  # inherited by the spawned workers before they import numpy
+    """Run every task of ``plan`` on ``executor`` (default: 2 local processes; 1 job: in this
+    process, in order).  Runs are listed in plan order whatever order they finished in."""
+    executor = executor or ExecutorSettings()
     t0 = time.perf_counter()
-    results = BenchResults(plan, jobs=jobs)
+    results = BenchResults(plan, jobs=executor.jobs, where=executor.describe())
     tasks = plan.tasks()
-    offline_of: dict[tuple[str, Cell], QueueWeights] = {}
-
-    def record(task: Task, out: RunResult | OfflineInfo) -> None:
-        if isinstance(out, OfflineInfo):
-            offline_of[(task.formulation, task.cell)] = out.weights
-            results.offline[(task.formulation, task.cell.radius, task.cell.speed)] = out
-        else:
-            results.runs.append(out)
-        if on_done is not None:
-            on_done(task, out)
-
-    ready = [t for t in tasks if not _needs(plan, t)]
-    waiting = [t for t in tasks if _needs(plan, t)]
-    if jobs <= 1:
-        for task in ready + waiting:
-            record(task, execute(plan, task, offline_of.get((task.formulation, task.cell))))
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-            # Offline models first: the tasks that wait on them are the longest.
-            ready.sort(key=lambda t: t.kind != OFFLINE)
-            running = {pool.submit(execute, plan, t, None): t for t in ready}
-            while running:
-                done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
-                for fut in done:
-                    task = running.pop(fut)
-                    record(task, fut.result())
-                    if task.kind == OFFLINE:
-                        weights = offline_of[(task.formulation, task.cell)]
-                        for dep in [t for t in waiting if (t.formulation, t.cell) == (task.formulation, task.cell)]:
-                            waiting.remove(dep)
-                            running[pool.submit(execute, plan, dep, weights)] = dep
+    # Offline models first: the tasks that wait on them are the longest.
+    ready = sorted((i for i, t in enumerate(tasks) if not _needs(plan, t)), key=lambda i: tasks[i].kind != OFFLINE)
+    waiting = [i for i, t in enumerate(tasks) if _needs(plan, t)]
+    runs: dict[int, RunResult] = {}
+    offline: dict[int, OfflineInfo] = {}
+    with open_runner(executor, "bench paper", len(tasks), lambda i, out: _describe(tasks[i], out), console,
+                     progress) as runner:
+        for i in ready:
+            runner.submit(execute_job, (plan, tasks[i], None), i)
+        for i, out in runner.as_completed():
+            task = tasks[i]
+            if isinstance(out, OfflineInfo):
+                offline[i] = out
+                for j in [j for j in waiting if (tasks[j].formulation, tasks[j].cell) == (task.formulation, task.cell)]:
+                    waiting.remove(j)
+                    runner.submit(execute_job, (plan, tasks[j], out.weights), j)
+            else:
+                runs[i] = out
+            if on_done is not None:
+                on_done(task, out)
+    results.runs = [runs[i] for i in sorted(runs)]
+    results.offline = {(tasks[i].formulation, tasks[i].cell.radius, tasks[i].cell.speed): offline[i] for i in sorted(offline)}
     results.wall_time = time.perf_counter() - t0
     return results
 
 
-__all__ = ["BenchPlan", "BenchResults", "Cell", "OFFLINE", "OfflineInfo", "PAPER_CELLS", "Task", "execute", "run_plan"]
+__all__ = ["BenchPlan", "BenchResults", "Cell", "OFFLINE", "OfflineInfo", "PAPER_CELLS", "Task", "execute", "execute_job", "run_plan"]
