@@ -18,7 +18,7 @@ from cfknode.app.bench.paper.mpc_full import (
 )
 from cfknode.models.quadrotor import NUMPY, casadi_backend, rigid_body_rhs, rk4_step
 from cfknode.app.bench.paper.rigid_body_knode import NumpyResidual, ResidualLayout, RigidBodyQueue
-from cfknode.app.bench.paper.protocol import CrazyflieParams
+from cfknode.app.bench.paper.vehicle import PAPER_VEHICLE, plus_mixer
 
 INERTIA = (1.43e-5, 1.43e-5, 2.89e-5)
 G = 9.81
@@ -138,7 +138,7 @@ def test_nominal_mpc_moves_toward_the_reference(nominal):
 
 
 def test_input_scaling_and_rotor_polytope():
-    veh = CrazyflieParams()
+    mixer, force_max = plus_mixer(PAPER_VEHICLE), PAPER_VEHICLE.thrust_max_per_motor
     x0 = np.zeros(13)
     x0[6] = 1.0
     x0[10] = 30.0  # rolling fast: braking it needs more moment than the rotors can give
@@ -147,15 +147,15 @@ def test_input_scaling_and_rotor_polytope():
     b = FullStateMpc(FullMpcSpec(horizon=6, input_scale=(0.1, 1e-3, 1e-3, 1e-3))).solve(x0, ref, np.zeros((6, 4)), 0.03)
     assert a.ok and b.ok
     np.testing.assert_allclose(a.u_pred, b.u_pred, rtol=1e-5, atol=1e-7)  # IPOPT sits ~1e-8 inside bounds
-    free = np.linalg.solve(veh.mixer, a.u_pred.T).T
-    assert free.min() < 0.0 and free.max() > veh.rotor_force_max  # beyond what four rotors can do
+    free = np.linalg.solve(mixer, a.u_pred.T).T
+    assert free.min() < 0.0 and free.max() > force_max  # beyond what four rotors can do
     spec = FullMpcSpec(
-        horizon=6, rotor_mixer=tuple(tuple(r) for r in veh.mixer), rotor_force_max=veh.rotor_force_max
+        horizon=6, rotor_mixer=tuple(tuple(r) for r in mixer), rotor_force_max=force_max
     )
     c = FullStateMpc(spec).solve(x0, ref, np.zeros((6, 4)), 0.03)
     assert c.ok
-    forces = np.linalg.solve(veh.mixer, c.u_pred.T).T
-    assert forces.min() > -1e-7 and forces.max() < veh.rotor_force_max + 1e-7
+    forces = np.linalg.solve(mixer, c.u_pred.T).T
+    assert forces.min() > -1e-7 and forces.max() < force_max + 1e-7
 
 
 def test_hybrid_mpc_equals_the_network_inside_the_graph():

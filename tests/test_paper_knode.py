@@ -12,7 +12,6 @@ from cfknode.models.modelfile import queue_weights
 from cfknode.app.bench.paper.rigid_body_knode import (
     NumpyResidual,
     OneStepPairs,
-    Physics,
     ResidualLayout,
     RigidBodyQueue,
     TrainSettings,
@@ -21,6 +20,7 @@ from cfknode.app.bench.paper.rigid_body_knode import (
     train_newest,
 )
 from cfknode.app.bench.paper.protocol import PaperPlant, PaperProtocol
+from cfknode.app.bench.paper.vehicle import PAPER_VEHICLE
 
 
 def _z(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -109,7 +109,7 @@ def _light_plant_pairs(n: int, seed: int) -> OneStepPairs:
 
 def test_training_learns_a_mass_change():
     pairs = _light_plant_pairs(120, seed=0)
-    phys = Physics()
+    phys = PAPER_VEHICLE
     for layout, settings in (
         (ResidualLayout.paper(), TrainSettings(epochs=80, lr=0.01, loss="paper")),
         (ResidualLayout.default(), TrainSettings(epochs=80, lr=0.01, loss="residual")),
@@ -124,7 +124,7 @@ def test_training_learns_a_mass_change():
 
 def test_output_layer_fit_recovers_the_residual_in_one_solve():
     pairs = _light_plant_pairs(80, seed=1)
-    phys = Physics()
+    phys = PAPER_VEHICLE
     layout = ResidualLayout.default()
     q = RigidBodyQueue(layout, torch.float64, seed=0)
     q.push()
@@ -145,4 +145,4 @@ def test_layout_validation():
         ResidualLayout(inputs=(17,), rows=(3,))
     assert replace(ResidualLayout.default(), hidden=8).hidden == 8
     with pytest.raises(ValueError):
-        train_newest(RigidBodyQueue(ResidualLayout.paper()), _light_plant_pairs(3, 0), TrainSettings(), Physics())
+        train_newest(RigidBodyQueue(ResidualLayout.paper()), _light_plant_pairs(3, 0), TrainSettings(), PAPER_VEHICLE)

@@ -9,7 +9,6 @@ from scipy.integrate import solve_ivp
 from cfknode.app.bench.paper.protocol import (
     Actuators,
     ChordCircle,
-    CrazyflieParams,
     MassEvent,
     PaperPlant,
     PaperProtocol,
@@ -18,6 +17,7 @@ from cfknode.app.bench.paper.protocol import (
     plant_rhs,
     position_mse,
 )
+from cfknode.app.bench.paper.vehicle import PAPER_ROTORS, PAPER_VEHICLE, plus_mixer
 
 
 def test_chord_circle_starts_at_r_and_moves_at_constant_speed_on_the_polygon():
@@ -89,19 +89,20 @@ def test_mass_events_apply_after_their_step():
 
 
 def test_actuators_clip_rotor_speeds_and_the_negative_force_fallback():
-    veh = CrazyflieParams()
-    assert veh.thrust_max == pytest.approx(0.575)
-    exact = Actuators(veh, reproduce_fallback=False)
+    veh = PAPER_VEHICLE
+    assert veh.max_thrust == pytest.approx(0.575)
+    mixer = plus_mixer(veh)
+    exact = Actuators(veh, PAPER_ROTORS, reproduce_fallback=False)
     u = np.array([0.3, 1e-4, -2e-4, 1e-5])
     np.testing.assert_allclose(exact.apply(u), u, rtol=1e-12, atol=1e-15)  # feasible: unchanged
     big = exact.apply(np.array([1.0, 0.0, 0.0, 0.0]))
-    assert big[0] == pytest.approx(veh.thrust_max)  # every rotor at 2500 rad/s
+    assert big[0] == pytest.approx(veh.max_thrust)  # every rotor at 2500 rad/s
     neg = exact.apply(np.array([0.05, 0.01, 0.0, 0.0]))  # rotor 4 would need a negative force
-    forces = np.linalg.solve(veh.mixer, neg)
+    forces = np.linalg.solve(mixer, neg)
     assert forces.min() == pytest.approx(0.0, abs=1e-15)
-    bug = Actuators(veh, reproduce_fallback=True)
+    bug = Actuators(veh, PAPER_ROTORS, reproduce_fallback=True)
     neg_bug = bug.apply(np.array([0.05, 0.01, 0.0, 0.0]))
-    forces_bug = np.linalg.solve(veh.mixer, neg_bug)
+    forces_bug = np.linalg.solve(mixer, neg_bug)
     # k_t * (trim force 0.0737 N)^2: about 1e-10 N instead of 0.
     assert 0.0 < forces_bug.min() < 1e-9
     np.testing.assert_allclose(neg_bug, neg, atol=1e-9)

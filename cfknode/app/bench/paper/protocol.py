@@ -25,35 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
-
-@dataclass(frozen=True)
-class CrazyflieParams:
-    """The paper's Crazyflie (flightsim / RotorPy ``crazyflie`` parameters)."""
-
-    mass: float = 0.03  # kg
-    inertia: tuple[float, float, float] = (1.43e-5, 1.43e-5, 2.89e-5)  # kg m^2
-    arm_length: float = 0.046  # m
-    rotor_min: float = 0.0  # rad/s
-    rotor_max: float = 2500.0  # rad/s
-    k_t: float = 2.3e-8  # N / (rad/s)^2
-    k_d: float = 7.8e-11  # N m / (rad/s)^2
-    gravity: float = 9.81
-    trim_rotor_speed: float = 1790.0  # rad/s: seeds the original's negative-force fallback
-
-    @property
-    def rotor_force_max(self) -> float:
-        return self.k_t * self.rotor_max**2
-
-    @property
-    def thrust_max(self) -> float:
-        """Collective thrust with all four rotors at full speed: 0.575 N."""
-        return 4.0 * self.rotor_force_max
-
-    @property
-    def mixer(self) -> np.ndarray:
-        """(T, Mx, My, Mz) = mixer @ rotor forces, "+" layout."""
-        arm, k = self.arm_length, self.k_d / self.k_t
-        return np.array([[1.0, 1.0, 1.0, 1.0], [0.0, arm, 0.0, -arm], [-arm, 0.0, arm, 0.0], [k, -k, k, -k]])
+from cfknode.app.bench.paper.vehicle import PAPER_ROTORS, PAPER_VEHICLE, PaperRotors, plus_mixer
+from cfknode.kernel.vehicle import VehicleConfig
 
 
 @dataclass(frozen=True)
@@ -75,7 +48,8 @@ class PaperProtocol:
     integrator: str = "rk45"  # "rk45" (the paper's solve_ivp) or "rk4" (fixed step, for comparison)
     waypoints: int = 550
     extra_angle: float = 10.0  # rad of polygon past the run's duration: th = linspace(0, duration + 10, 550)
-    vehicle: CrazyflieParams = field(default_factory=CrazyflieParams)
+    vehicle: VehicleConfig = PAPER_VEHICLE
+    rotors: PaperRotors = PAPER_ROTORS
 
     def __post_init__(self) -> None:
         if self.plant_hz % self.control_hz:
@@ -151,21 +125,22 @@ class Actuators:
     ``k_t * (previous force)^2`` (about 1e-10 N) instead of 0; with False it is clipped to 0.
     """
 
-    vehicle: CrazyflieParams
+    vehicle: VehicleConfig = PAPER_VEHICLE
+    rotors: PaperRotors = PAPER_ROTORS
     reproduce_fallback: bool = True
     _previous: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._mixer = self.vehicle.mixer
+        self._mixer = plus_mixer(self.vehicle)
         self._unmix = np.linalg.inv(self._mixer)
         self.reset()
 
     def reset(self) -> None:
-        self._previous = np.full(4, self.vehicle.k_t * self.vehicle.trim_rotor_speed**2)
+        self._previous = np.full(4, self.rotors.k_t * self.rotors.trim_rotor_speed**2)
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """Commanded (T, Mx, My, Mz) -> what four clipped rotors actually produce."""
-        k_t = self.vehicle.k_t
+        k_t = self.rotors.k_t
         forces = self._unmix @ np.asarray(u, dtype=float)
         negative = forces < 0.0
         if self.reproduce_fallback:
@@ -173,7 +148,7 @@ class Actuators:
         else:
             forces[negative] = 0.0
         self._previous = forces.copy()
-        speeds = np.clip(np.sqrt(forces / k_t), self.vehicle.rotor_min, self.vehicle.rotor_max)
+        speeds = np.clip(np.sqrt(forces / k_t), self.rotors.rotor_min, self.rotors.rotor_max)
         return self._mixer @ (k_t * speeds * speeds)
 
 

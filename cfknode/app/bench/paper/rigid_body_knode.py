@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from cfknode.models.modelfile import queue_weights
+from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.models.quadrotor import NUMPY, rigid_body_rhs, torch_backend
 
 NX, NU, NZ = 13, 4, 17
@@ -307,16 +308,7 @@ class TrainStats:
     history: tuple[float, ...] = field(default_factory=tuple, repr=False)
 
 
-@dataclass(frozen=True)
-class Physics:
-    """The nominal model inside the hybrid ODE."""
-
-    mass: float = 0.03
-    inertia: tuple[float, float, float] = (1.43e-5, 1.43e-5, 2.89e-5)
-    gravity: float = 9.81
-
-
-def _rk4_delta(queue: RigidBodyQueue, x: torch.Tensor, u: torch.Tensor, h: float, phys: Physics) -> torch.Tensor:
+def _rk4_delta(queue: RigidBodyQueue, x: torch.Tensor, u: torch.Tensor, h: float, phys: VehicleConfig) -> torch.Tensor:
     def f(y: torch.Tensor) -> torch.Tensor:
         return queue.rhs(y, u, phys.mass, phys.inertia, phys.gravity)
 
@@ -327,7 +319,7 @@ def _rk4_delta(queue: RigidBodyQueue, x: torch.Tensor, u: torch.Tensor, h: float
     return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def nominal_increment(pairs: OneStepPairs, h: float, phys: Physics) -> np.ndarray:
+def nominal_increment(pairs: OneStepPairs, h: float, phys: VehicleConfig) -> np.ndarray:
     """x1 - x0 predicted by one RK4 step of the nominal model (numpy, float64): (m, 13)."""
     x0, u = pairs.z0[:, :NX], pairs.z0[:, NX:]
 
@@ -341,7 +333,7 @@ def nominal_increment(pairs: OneStepPairs, h: float, phys: Physics) -> np.ndarra
     return (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def apparent_residual(pairs: OneStepPairs, rows: Sequence[int], h: float, phys: Physics) -> np.ndarray:
+def apparent_residual(pairs: OneStepPairs, rows: Sequence[int], h: float, phys: VehicleConfig) -> np.ndarray:
     """(x1 - x0 - nominal increment) / h on ``rows``: what the residual must have been, (m, len(rows))."""
     return (pairs.x1 - pairs.z0[:, :NX] - nominal_increment(pairs, h, phys))[:, list(rows)] / h
 
@@ -351,7 +343,7 @@ def _paper_loss(queue: RigidBodyQueue, pred: torch.Tensor, delta: torch.Tensor, 
     return 0.5 * torch.mean((pred - delta) ** 2) + l2 * reg
 
 
-def train_newest(queue: RigidBodyQueue, pairs: OneStepPairs, settings: TrainSettings, phys: Physics) -> TrainStats:
+def train_newest(queue: RigidBodyQueue, pairs: OneStepPairs, settings: TrainSettings, phys: VehicleConfig) -> TrainStats:
     """Train the newest network of ``queue`` in place with full-batch Adam (the others frozen)."""
     if not queue.networks:
         raise ValueError("push() a network before training")
@@ -394,7 +386,7 @@ def train_newest(queue: RigidBodyQueue, pairs: OneStepPairs, settings: TrainSett
     return TrainStats(history[0] if history else final, final, settings.epochs, time.perf_counter() - start, tuple(history))
 
 
-def fit_output_layer(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys: Physics, ridge: float) -> None:
+def fit_output_layer(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys: VehicleConfig, ridge: float) -> None:
     """Re-fit the newest network's output layer in closed form (ridge toward its current value).
 
     The "residual" loss is linear in the output layer: one small solve reaches its minimum,
@@ -420,7 +412,7 @@ def fit_output_layer(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys:
         newest.l2.bias.copy_(torch.as_tensor(theta[:, -1], dtype=queue.dtype))
 
 
-def residual_error(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys: Physics) -> float:
+def residual_error(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys: VehicleConfig) -> float:
     """Mean squared error of the queue's residual against the apparent residual, on its rows and
     divided by its output scales (an empty queue scores the nominal model): the validation metric."""
     if len(pairs) == 0:
@@ -436,7 +428,6 @@ def residual_error(queue: RigidBodyQueue, pairs: OneStepPairs, h: float, phys: P
 __all__ = [
     "NumpyResidual",
     "OneStepPairs",
-    "Physics",
     "QueueWeights",
     "ResidualLayout",
     "RigidBodyNet",

@@ -88,7 +88,7 @@ def simulate(
     veh = protocol.vehicle
     plant = PaperPlant(protocol)
     circle = ChordCircle(protocol)
-    act = Actuators(veh, reproduce_fallback=form.fallback_bug)
+    act = Actuators(veh, protocol.rotors, reproduce_fallback=form.fallback_bug)
     steps, hold, dt = protocol.steps, protocol.hold, protocol.plant_dt
     uses_nn = kind in ("knode_offline", "knode_online")
     if kind != "geometric":
@@ -123,7 +123,7 @@ def simulate(
         elif k % hold == 0:
             learner.before_tick(t)
             mass = plant.mass if kind == "oracle" else veh.mass
-            hover = model_hover_thrust(x, mass, veh.gravity, learner.residual, veh.thrust_max) if form.hover_input_ref else 0.0
+            hover = model_hover_thrust(x, mass, veh.gravity, learner.residual, veh.max_thrust) if form.hover_input_ref else 0.0
             x_ref, u_ref = mpc_reference(form, circle, t, dt, hover)
             sol = mpc.solve(x, x_ref, u_ref, mass, learner.residual)
             if not sol.ok and form.nominal_on_failure and learner.residual is not None:
