@@ -142,7 +142,9 @@ def test_costly_frames_are_spaced_out_to_stay_within_the_budget():
 
     stats = asyncio.run(main())
     assert stats.period_s >= 0.02 / 0.05  # 20 ms frames at most 5% of the time: 0.4 s apart
-    assert stats.frames == 2  # the first frame, then the last one when stopped
+    # The first frame's cost is one-off (rich's caches): the second, at the refresh rate, sets the
+    # spacing; then the last one when stopped.
+    assert stats.frames == 3
 
 
 def test_starter_runs_the_dashboard_beside_a_loop_it_does_not_own():

@@ -168,7 +168,7 @@ def test_fly_with_an_unusable_mailbox_is_a_one_line_error(tmp_path, capsys):
                  "--set", "safety.estop_dir=/proc/nope"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
-    assert err[-1].startswith("cfknode: error: config key 'safety.estop_dir': cannot create the e-stop mailbox")
+    assert err[-1].startswith("cfknode: error: ") and "safety.estop_dir" in err[-1] and "cannot create" in err[-1]
     assert "Traceback" not in "\n".join(err)
 
 

@@ -233,10 +233,11 @@ async def run_dashboard(
                 live.update(render_frame(status, start, keys.error if keys else None), refresh=True)
                 cost = time.perf_counter() - start
                 meter.costs.append(cost)
-                recent.append(cost)
+                if len(meter.costs) > 1:  # the first frame pays one-off costs (rich's caches), not a rate
+                    recent.append(cost)
                 # Keep frames under the budget share of wall time. The median of recent frames
                 # decides, so one frame preempted by the OS does not freeze the view.
-                period = max(1.0 / refresh_hz, sorted(recent)[len(recent) // 2] / budget)
+                period = max(1.0 / refresh_hz, sorted(recent)[len(recent) // 2] / budget) if recent else 1.0 / refresh_hz
                 meter.period_s = period
                 if stop_event.is_set():
                     break
