@@ -121,14 +121,15 @@ def training_round(cfg: Config, t_col: float, epochs: int, rounds: int = 5) -> T
                      note=f"t_col = {t_col * 1e3:.0f} ms")
 
 
-def lockstep_flight(cfg: Config, model: ResidualQueue | None, seconds: float) -> dict[str, Any]:
-    """A short lockstep circle through the whole stack: tick compute and the speed factor."""
+def lockstep_flight(cfg: Config, model: ResidualQueue | None, seconds: float, adaptation: str = "none") -> dict[str, Any]:
+    """A short lockstep circle through the whole stack: tick compute and the speed factor
+    (``adaptation``: the fast layer's mode, to measure its cost)."""
     import tempfile
 
     from cfknode.app.mission import run_flight
 
     with tempfile.TemporaryDirectory() as tmp:
-        overrides = {"trajectory.duration": seconds, "log.dir": tmp}
+        overrides = {"trajectory.duration": seconds, "log.dir": tmp, "controller.adaptation": adaptation}
         flight_cfg = load_config(overrides=overrides)
         if model is not None:
             # A synthetic model file: the flight loads it exactly as `--model` would.
@@ -189,6 +190,7 @@ def run_timing_bench(quick: bool = False, progress: Callable[[str], None] = lamb
     flights = {
         "nominal": lockstep_flight(cfg, None, 4.0 if quick else 20.0),
         "knode": lockstep_flight(cfg, synthetic_queue(cfg.knode.hidden, cfg.knode.queue_size), 4.0 if quick else 20.0),
+        "nominal + adaptation (dob)": lockstep_flight(cfg, None, 4.0 if quick else 20.0, "dob"),
     }
     by_name = {r.name: r for r in rows}
     ratios = _ratios(by_name)
