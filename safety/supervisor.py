@@ -13,7 +13,7 @@ without passing it. Each tick the loop asks ``plan`` what to fly:
   (level, thrust a little below hover, so it sinks gently);
 - ``("off", ref, source)``: motors off (waiting for the first pose, landed, stopped, refused).
 
-Watchdogs (HF 5; the firmware has none of these): mocap loss (sink blind, then stop),
+Watchdogs (the firmware has none of these: docs/hardware.md#host-safety): mocap loss (sink blind, then stop),
 geofence (land, or stop far outside), radio link (lost: stop; silent or slow: land), loop
 overruns and MPC deadlines (wall clock only: in lockstep no time passes while computing),
 battery (refuse take-off, land), tumble (stop), tracking error (land), sustained MPC failure

@@ -1,4 +1,4 @@
-"""What the Crazyflie firmware does with what it receives (default PID controller, HF 1.2, 1.3, 2.1, 5).
+"""What the Crazyflie firmware does with what it receives (default PID controller; docs/hardware.md).
 
 Inputs arrive as decoded CRTP packets (``on_*``); ``control`` runs once per plant step
 (500 Hz, the firmware's ATTITUDE_RATE) and returns the four motor commands. Modelled:

@@ -17,7 +17,7 @@ class PidGains:
     i_limit: float
 
 
-# platform_defaults_cf2.h (HF 2.1): angle loops in deg -> deg/s, rate loops in deg/s -> PWM units.
+# platform_defaults_cf2.h (docs/hardware.md#attitude-controller): angle loops in deg -> deg/s, rate loops in deg/s -> PWM units.
 ROLL_ANGLE_GAINS = PidGains(6.0, 3.0, 0.0, 20.0)
 PITCH_ANGLE_GAINS = PidGains(6.0, 3.0, 0.0, 20.0)
 YAW_ANGLE_GAINS = PidGains(6.0, 1.0, 0.35, 360.0)
@@ -96,7 +96,7 @@ def _saturate_int16(value: float) -> int:
 
 
 def legacy_mixer(thrust: float, roll: int, pitch: int, yaw: int) -> tuple[int, int, int, int]:
-    """Legacy quadrotor power distribution (HF 2.1), pitch in the legacy sense (+ = nose up).
+    """Legacy quadrotor power distribution (docs/hardware.md#mixer), pitch in the legacy sense (+ = nose up).
 
     If any motor would exceed 65535, all four are lowered by the excess, which keeps the
     differences (the attitude authority) at the cost of thrust; then each is clamped to
