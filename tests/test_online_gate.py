@@ -207,7 +207,7 @@ def test_gate_without_held_out_data_rejects() -> None:
 
 def test_flight_side_imports_no_torch() -> None:
     code = (
-        "import sys, cfknode.flight.learning.learner, cfknode.app.learning, cfknode.flight.learning.trainer_process;"
+        "import sys, cfknode.flight.learning.learner, cfknode.app.learning, cfknode.models.trainer_process;"
         "print('torch' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

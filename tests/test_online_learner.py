@@ -15,7 +15,7 @@ from cfknode.flight.learning.learner import OnlineLearner
 from cfknode.flight.learning.trainer_client import TrainerFault
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.flight.learning.trainer_process import TrainOutcome, TrainRequest
+from cfknode.models.trainer_process import TrainOutcome, TrainRequest
 from cfknode.app.learning import learner_settings
 from fakes import Est, ListLog, Tick
 

@@ -14,7 +14,7 @@ from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.knode import KnodeQueue, to_torch_queue
 from cfknode.models.modelfile import Normalisation
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.flight.learning.trainer_process import (
+from cfknode.models.trainer_process import (
     CRASH_EXIT_CODE,
     TrainerReady,
     TrainOutcome,

@@ -31,7 +31,7 @@ from cfknode.flight.learning.learner import LearnerSettings, OnlineLearner
 from cfknode.flight.learning.gate import GateLimits, operating_envelope
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.flight.learning.trainer_client import TrainerClient
-from cfknode.flight.learning.trainer_process import TrainerSettings
+from cfknode.models.trainer_process import TrainerSettings
 
 # Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
 READY_TIMEOUT_S = 120.0

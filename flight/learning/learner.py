@@ -1,6 +1,6 @@
 """Online learning, flight side (the paper's Algorithm 1): the learner that ties the parts together.
 
-No torch here: the trainer is a child process (``cfknode.flight.learning.trainer_process``) and this
+No torch here: the trainer is a child process (``cfknode.models.trainer_process``) and this
 side only sends numpy windows and receives numpy ``ModelFile``s.
 
 One ``OnlineLearner`` is a loop observer. Its ``on_tick`` runs after every tick's setpoint is
@@ -53,7 +53,7 @@ from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.flight.learning.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
+from cfknode.models.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
 
 
 from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the app and tests use them)

@@ -12,7 +12,7 @@ from cfknode.flight.learning.gate import GateLimits, GateVerdict
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.flight.learning.trainer_process import TrainOutcome, TrainRequest, Window
+from cfknode.models.trainer_process import TrainOutcome, TrainRequest, Window
 
 
 class Log(Protocol):

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from cfknode.flight.learning.gate import GateVerdict
-from cfknode.flight.learning.trainer_process import TrainOutcome
+from cfknode.models.trainer_process import TrainOutcome
 from cfknode.flight.learning.records import RoundRecord
 
 

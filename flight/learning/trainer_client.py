@@ -1,6 +1,6 @@
 """The flight side of the trainer process: spawn it, send requests, receive results, detect crashes and hangs.
 
-No torch here: the child runs ``cfknode.flight.learning.trainer_process.trainer_main``, and only numpy
+No torch here: the child runs ``cfknode.models.trainer_process.trainer_main``, and only numpy
 windows and ``ModelFile``s cross the pipe.
 """
 
@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from cfknode.flight.learning.trainer_process import (
+from cfknode.models.trainer_process import (
     IGNORED_SIGNALS,
     TrainerReady,
     TrainerSettings,

@@ -10,7 +10,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from cfknode.flight.learning.trainer_process import Window
+from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
 MIN_HEIGHT = 0.1  # m above the ground: ground effect and contact are not the model's business

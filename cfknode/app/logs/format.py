@@ -167,7 +167,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
         flush=True,
     ),
     ChannelSpec(
-        "/training", "cfknode.Training", "One online training round's result (cfknode.flight.learning.trainer_process).",
+        "/training", "cfknode.Training", "One online training round's result (cfknode.models.trainer_process).",
         {"round": _num("training round, 1.."), "version": _num("candidate model version"),
          "window": _vec(2, "training window [t0, t1], flight time s"), "ok": _bool("the round produced a model")},
         {"base_version": _num("version the window was flown with"), "pairs": _num("training pairs"),
