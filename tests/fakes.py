@@ -100,3 +100,13 @@ def serve_sim(sim: Any, port: int) -> Iterator[tuple[Any, str]]:
         yield sim, uri
     finally:
         unregister_simulator(uri)
+
+
+# A take-off, 1.5 s of pattern and a landing: the shortest whole flight the log tests read back.
+SHORT_FLIGHT = {
+    "trajectory.duration": 1.5,
+    "trajectory.takeoff_duration": 1.0,
+    "trajectory.settle_duration": 0.2,
+    "trajectory.land_duration": 1.0,
+    "trajectory.ramp_duration": 0.4,
+}

@@ -20,15 +20,10 @@ from cfknode.app.config import load_config
 from cfknode.app.logs.format import CHANNELS, MCAP_MAGIC
 from cfknode.app.logs.reader import LogData, read_log, replay_mocap
 from cfknode.app.mission import run_flight
+from fakes import SHORT_FLIGHT
 from cfknode.mocap.replay import ReplayError
 
-SHORT = {
-    "trajectory.duration": 1.5,
-    "trajectory.takeoff_duration": 1.0,
-    "trajectory.settle_duration": 0.2,
-    "trajectory.land_duration": 1.0,
-    "trajectory.ramp_duration": 0.4,
-}
+SHORT = SHORT_FLIGHT
 
 
 @pytest.fixture(scope="module")

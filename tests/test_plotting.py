@@ -12,16 +12,10 @@ from cfknode.app.commands import plot as plot_command
 from cfknode.app.config import load_config
 from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.app.mission import run_flight
+from fakes import SHORT_FLIGHT
 from cfknode.app.ui.plotting import PLOTS, plot_logs, trace_from_log
 
-SHORT = {
-    "trajectory.duration": 1.5,
-    "trajectory.takeoff_duration": 1.0,
-    "trajectory.settle_duration": 0.2,
-    "trajectory.land_duration": 1.0,
-    "trajectory.ramp_duration": 0.4,
-    "sim.mass_changes": [{"t": 2.0, "factor": 1.2}],
-}
+SHORT = {**SHORT_FLIGHT, "sim.mass_changes": [{"t": 2.0, "factor": 1.2}]}
 MODEL_EVENTS = [
     (2.1, {"version": 1, "event": "swap", "val_error": 0.03, "queue": [1]}),
     (2.3, {"version": 2, "event": "reject", "reason": "validation error worse"}),

@@ -14,16 +14,11 @@ from cfknode.app.commands import replay as replay_command
 from cfknode.app.config import ConfigError, load_config
 from cfknode.app.logs.writer import read_log
 from cfknode.app.mission import run_flight
+from fakes import SHORT_FLIGHT
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation, save_model
 from cfknode.app.replay import COMMAND_FIELDS, ReplayError, load_residual_model, logged_config, replay_log, write_csv
 
-SHORT = {
-    "trajectory.duration": 1.5,
-    "trajectory.takeoff_duration": 1.0,
-    "trajectory.settle_duration": 0.2,
-    "trajectory.land_duration": 1.0,
-    "trajectory.ramp_duration": 0.4,
-}
+SHORT = SHORT_FLIGHT
 
 
 @pytest.fixture(scope="module")

@@ -164,11 +164,7 @@ class OnlineLearner(LearnerReports):
         if event is not None:
             self._pace_from = None
             self._on_event(event, t)
-        if self._gating is not None:
-            self._step_gate(t)
-        elif self._held is not None:
-            self._start_gate(t)
-        self._maybe_send(t)
+        self._advance(t)
 
     def _service_sim_time(self, t: float) -> None:
         """cpu/fixed latency: the trainer's result is taken at send + delay in flight time, whatever the wall did."""
@@ -196,6 +192,10 @@ class OnlineLearner(LearnerReports):
             if nxt >= due - 1e-9:
                 event, self._arrived = self._arrived, None
                 self._on_event(event, t)
+        self._advance(t)
+
+    def _advance(self, t: float) -> None:
+        """Between ticks: one gate slice (or start the held candidate's gate), then send a waiting window."""
         if self._gating is not None:
             self._step_gate(t)
         elif self._held is not None:
