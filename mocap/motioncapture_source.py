@@ -101,6 +101,7 @@ class MotioncaptureSource:
         self._out_of_band = False
         self.warnings: deque[tuple[float, str]] = deque(maxlen=100)  # (flight time, text)
         self._stop = False
+        self._next_check = math.inf
         self._thread = threading.Thread(target=self._run, name=f"mocap-reader {label}", daemon=True)
 
     @classmethod
@@ -136,37 +137,48 @@ class MotioncaptureSource:
     def _run(self) -> None:
         client = self._client
         name = self.rigid_body
-        next_check = math.inf  # one period after the first frame
         while not self._stop:
             try:
                 client.waitForNextFrame()
                 mono = getattr(client, "frame_monotonic", None) or time.monotonic()
                 body = client.rigidBodies.get(name)
             except Exception as exc:
-                if not self._stop:
-                    self._error = first_line(f"{exc}" if isinstance(exc, MocapError) else f"{type(exc).__name__}: {exc}")
-                    _log.error("%s: %s", self.label, self._error)
+                self.stream_ended(exc)
                 return
-            pose = None if body is None else _pose_of(body, mono + self._offset)
-            with self._lock:
-                self._stream_frames += 1
-                self._stream_meter.add(mono)
-                if pose is None:
-                    self._dropouts += 1
-                else:
-                    self._frames += 1
-                    self._body_meter.add(mono)
-                    self._latest, self._latest_mono = pose, mono
-            if pose is not None and self._on_pose is not None:
-                try:
-                    self._on_pose(pose)
-                except Exception:  # a consumer's bug must not stop the stream
-                    self._callback_errors += 1
-            if mono >= next_check:
-                next_check = mono + RATE_CHECK_PERIOD
-                self._check_rate(mono)
-            elif next_check == math.inf:
-                next_check = mono + RATE_CHECK_PERIOD
+            self.ingest(mono, body)
+
+    def stream_ended(self, exc: BaseException) -> None:
+        """The client failed (or was closed): remember why, in one line, unless we are closing."""
+        if not self._stop:
+            self._error = first_line(f"{exc}" if isinstance(exc, MocapError) else f"{type(exc).__name__}: {exc}")
+            _log.error("%s: %s", self.label, self._error)
+
+    def ingest(self, mono: float, body: Any) -> None:
+        """One frame of the stream, received at ``mono``; ``body`` is this rigid body in it (None: missing).
+        Called by the reader thread: this source's own, or a shared one (mocap/shared_source.py)."""
+        pose = None if body is None else _pose_of(body, mono + self._offset)
+        with self._lock:
+            self._stream_frames += 1
+            self._stream_meter.add(mono)
+            if pose is None:
+                self._dropouts += 1
+            else:
+                self._frames += 1
+                self._body_meter.add(mono)
+                self._latest, self._latest_mono = pose, mono
+        if pose is not None and self._on_pose is not None:
+            try:
+                self._on_pose(pose)
+            except Exception:  # a consumer's bug must not stop the stream
+                self._callback_errors += 1
+        if mono >= self._next_check:
+            self._next_check = mono + RATE_CHECK_PERIOD
+            self._check_rate(mono)
+        elif self._next_check == math.inf:
+            self._next_check = mono + RATE_CHECK_PERIOD  # one period after the first frame
+
+    def reader_alive(self) -> bool:
+        return self._thread.is_alive()
 
     def _check_rate(self, mono: float) -> None:
         with self._lock:
@@ -219,7 +231,7 @@ class MotioncaptureSource:
     def wait_for_frames(self, n: int, timeout: float) -> bool:
         """Block (never on the event loop) until ``n`` poses of the body have arrived."""
         end = time.monotonic() + timeout
-        while self._frames < n and time.monotonic() < end and self._error is None and self._thread.is_alive():
+        while self._frames < n and time.monotonic() < end and self._error is None and self.reader_alive():
             time.sleep(0.005)
         return self._frames >= n
 

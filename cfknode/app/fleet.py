@@ -23,12 +23,13 @@ import dataclasses
 import re
 import signal
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from cfknode import __version__
-from cfknode.app.backends.sim_fleet import FleetDrone, FleetSimBackend
+from cfknode.app.backends.base import Backend
+from cfknode.app.backends.sim_fleet import FleetSimBackend
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
@@ -127,9 +128,14 @@ def preflight(cfg: Config, names: Sequence[str], configs: Sequence[Config], refs
     line = refusal(names, [r.inner for r in refs], cfg.fleet.min_separation)
     if line is not None:
         raise ConfigError(line)
-    loads = [LinkLoad(n, c.radio.uri, c.radio.tx_rate_hz, c.sim.mocap_rate_hz, cfg.fleet.ping_hz)
+    loads = [LinkLoad(n, c.radio.uri, c.radio.tx_rate_hz, _pose_rate_hz(c), cfg.fleet.ping_hz)
              for n, c in zip(names, configs)]
     return check_radio_budget(loads, cfg.fleet.radio_budget_pps, cfg.fleet.drones_per_sim_radio)
+
+
+def _pose_rate_hz(cfg: Config) -> float:
+    """Extposes per second on a drone's link: one per frame of the mocap it flies with."""
+    return cfg.hardware.mocap_rate_hz if cfg.backend == "cf" else cfg.sim.mocap_rate_hz
 
 
 class FleetCoordinator:
@@ -242,48 +248,63 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
         raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
     try:
         with FleetSimBackend.open(names, configs) as backend:
-            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+            def handback() -> list[dict[str, Any]]:
+                for d in backend.drones:
+                    d.radio.shutdown()
+                firmware = backend.settle_after_handback()
+                return [{"firmware_after_shutdown": firmware[n],
+                         "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"]}
+                        for n, d in zip(names, backend.drones)]
+
+            return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
+                              handback)
     finally:
         for box in boxes:
             box.close()
 
 
-def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs: Sequence[HoldableReference],
+def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], refs: Sequence[HoldableReference],
                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
-               name_hint: str, forced: Sequence[dict[str, Any]]) -> FleetResult:
-    config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, backend.drones)}}
+               name_hint: str, forced: Sequence[dict[str, Any]],
+               handback: Callable[[], Sequence[dict[str, Any]]]) -> FleetResult:
+    """Fly connected drones (simulated or real: each a ``Backend``) under one coordinator and one log.
+
+    ``handback()`` hands every drone back once all flight loops ended and returns each one's
+    summary extras (firmware state, pre-flight report). On a wall clock the solve deadline and
+    the supervisor's deadline watch apply, as for a single hardware flight."""
+    config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
             flog.write("/events", 0.0, event)
         logs = [PrefixedLog(flog, n) for n in names]
-        sups = [build_supervisor(d.config, d.radio, trajectory=ref, log=log, deadlines_apply=False,
+        for d, log in zip(drones, logs):
+            for event in d.events:  # its pre-flight checks (hardware)
+                log.write("/events", 0.0, event)
+        sups = [build_supervisor(d.config, d.radio, trajectory=ref, log=log, deadlines_apply=not d.clock.lockstep,
                                  inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
-                for d, ref, log in zip(backend.drones, refs, logs)]
+                for d, ref, log in zip(drones, refs, logs)]
         coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
         parts = []
-        for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(backend.drones, refs, sups, logs, models, mpcs,
-                                                                      boxes)):
+        for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(drones, refs, sups, logs, models, mpcs, boxes)):
             ground_z = float(d.start_position[2])
+            deadline = d.config.safety.solve_deadline_s if sup.deadlines_apply else None
             controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
-                                    deadline_s=None, ground_z=ground_z)
+                                    deadline_s=deadline, ground_z=ground_z)
             parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                      trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                      observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
-        records = asyncio.run(_gather(backend.drones, parts, coordinator))
-        for d in backend.drones:
-            d.radio.shutdown()
-        firmware = backend.settle_after_handback()
+        records = asyncio.run(_gather(drones, parts, coordinator))
+        after = handback()
         results = []
-        for name, d, rec, sup, ref in zip(names, backend.drones, records, sups, refs):
+        for name, d, rec, sup, ref, extra in zip(names, drones, records, sups, refs, after):
             outcome = sup.outcome()
             summary = compute_summary(
                 t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
                 window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
                 extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
                        "safety_state": outcome.state.value, "safety_cause": outcome.cause,
-                       "fallback_ticks": rec.fallbacks, "controller": cfg.controller.kind, "backend": "sim",
-                       "lockstep": True, "firmware_after_shutdown": firmware[name],
-                       "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"], **rec.adaptation})
+                       "fallback_ticks": rec.fallbacks, "controller": cfg.controller.kind, "backend": d.config.backend,
+                       "lockstep": bool(d.clock.lockstep), **extra, **rec.adaptation})
             flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
             results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome))
         closest = true_min_separation([r.record for r in results])
@@ -295,7 +316,7 @@ def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs
     return result
 
 
-async def _gather(drones: Sequence[FleetDrone], parts: Sequence[FlightParts],
+async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
                   coordinator: FleetCoordinator) -> list[FlightRecord]:
     loop = asyncio.get_running_loop()
 
@@ -306,11 +327,13 @@ async def _gather(drones: Sequence[FleetDrone], parts: Sequence[FlightParts],
         except (RuntimeError, ValueError, NotImplementedError):
             pass
 
-    async def one(drone: FleetDrone, p: FlightParts) -> FlightRecord:
+    async def one(drone: Backend, p: FlightParts) -> FlightRecord:
         try:
             return await fly(p)
         finally:
-            drone.clock.leave()
+            leave = getattr(drone.clock, "leave", None)  # a lockstep member must not hold the others back
+            if leave is not None:
+                leave()
             own_sigint()
 
     tasks = [asyncio.ensure_future(one(d, p)) for d, p in zip(drones, parts)]
@@ -340,5 +363,5 @@ def true_min_separation(records: Sequence[FlightRecord]) -> float:
     return best
 
 
-__all__ = ["DroneResult", "FleetCoordinator", "FleetResult", "drone_configs", "fleet_channels", "preflight",
-           "run_fleet", "true_min_separation"]
+__all__ = ["DroneResult", "FleetCoordinator", "FleetResult", "PrefixedLog", "drone_configs", "fleet_channels",
+           "fly_drones", "preflight", "run_fleet", "true_min_separation"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
@@ -29,13 +28,11 @@ from cfknode.kernel.clock import WallClock
 from cfknode.kernel.link import LinkStatus
 from cfknode.safety.watchdogs import radio_link_status
 from cfknode.app.backends.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
-from cfknode.mocap.simulated import SimulatedMocap
+from cfknode.app.backends.sim_mocap import SimulatedMotionCaptureClient
 from cfknode.mocap.motioncapture_source import (
     Connector,
     MocapError,
     MotioncaptureSource,
-    SdkQuaternion,
-    SdkRigidBody,
 )
 from cfknode.app.backends.robots import Robot, load_robot
 from cfknode.safety.preflight import PreflightError, PreflightReport, PreflightSnapshot, enforce, render_table, run_checks
@@ -121,6 +118,34 @@ def hardware_backend(
         expected_rate_hz=hw.mocap_rate_hz,
         mock_bodies={robot.name: (*robot.initial_position, 1.0, 0.0, 0.0, 0.0)},
     )
+    try:
+        with connect_robot(cfg, robot, mocap, console=console) as link:
+            clock = WallClock()
+            mocap.set_time_base(clock.now)
+            link.radio.set_clock(clock.now)
+            yield HardwareBackend(
+                robot=robot, config=flight_config(cfg, robot), mocap=mocap, radio=link.radio, clock=clock,
+                preflight=link.preflight, start_position=link.start_position,
+            )
+    finally:
+        mocap.close()
+
+
+@dataclass(frozen=True)
+class RobotLink:
+    """A robot connected and checked, not yet on a flight clock."""
+
+    radio: HardwareRadio
+    preflight: PreflightReport
+    start_position: np.ndarray  # measured at the pre-flight: where the take-off starts
+
+
+@contextlib.contextmanager
+def connect_robot(cfg: Config, robot: Robot, mocap: MotioncaptureSource, *, console: Any = None) -> Iterator[RobotLink]:
+    """Connect ``robot``'s radio, feed it ``mocap``'s frames, run its pre-flight checks, yield;
+    always hand the drone back. ``mocap`` reads this robot's rigid body (its own connection or a
+    shared one: mocap/shared_source.py). Raises one of ``HARDWARE_ERRORS``."""
+    hw = cfg.hardware
     radio: HardwareRadio | None = None
     try:
         radio = HardwareRadio(
@@ -147,17 +172,11 @@ def hardware_backend(
         report = enforce(report, hw.force)
         latest = mocap.status().latest
         start = np.array(latest.position if latest is not None else robot.initial_position, dtype=float)
-        clock = WallClock()
-        mocap.set_time_base(clock.now)
-        radio.set_clock(clock.now)
-        yield HardwareBackend(
-            robot=robot, config=flight_config(cfg, robot), mocap=mocap, radio=radio, clock=clock,
-            preflight=report, start_position=start,
-        )
+        yield RobotLink(radio=radio, preflight=report, start_position=start)
     finally:
         if radio is not None:
             radio.shutdown()
-        mocap.close()
+        mocap.set_pose_listener(None)  # a shared mocap streams on: no extposes to a drone handed back
 
 
 def _snapshot(cfg: Config, robot: Robot, radio: HardwareRadio, mocap: MotioncaptureSource) -> PreflightSnapshot:
@@ -193,65 +212,16 @@ def _snapshot(cfg: Config, robot: Robot, radio: HardwareRadio, mocap: Motioncapt
 # --- the simulator behind the hardware path ------------------------------------------------------
 
 
-class SimulatedMotionCapture:
-    """The ``motioncapture`` object API (``waitForNextFrame``, ``rigidBodies``) over the simulator's
-    mocap (``SimulatedMocap``: frame rate, noise, latency, dropouts), for a simulator stepping in
-    another thread. A dropped frame arrives without the body, as an occluded Vicon subject does."""
+class SimulatedMotionCapture(SimulatedMotionCaptureClient):
+    """The ``motioncapture`` object API over one simulator (backends/sim_mocap.py): frame rate,
+    noise, latency and dropouts from ``SimulatedMocap``; a dropped frame arrives without the body."""
 
     def __init__(
         self, sim: Any, body_name: str, *, rate_hz: float, position_noise: float = 0.0,
         attitude_noise: float = 0.0, latency: float = 0.0, dropout_prob: float = 0.0, seed: int = 0,
     ) -> None:
-        self._sim = sim
-        self._name = body_name
-        self._source = SimulatedMocap(sim, rate_hz, position_noise, attitude_noise, latency, dropout_prob, seed)
-        self._cond = threading.Condition()
-        self._seq = 0
-        self._consumed = 0
-        self._last_pose: Any = None  # the newest pose delivered
-        self._last_dropouts = 0
-        self._ready: dict[str, SdkRigidBody] = {}
-        self._bodies: dict[str, SdkRigidBody] = {}
-        self._closed = False
-        sim.add_step_observer(self._on_step)  # after the source's own observer: it sees this step's frame
-
-    def _on_step(self, t: float, state: np.ndarray) -> None:
-        if self._closed:
-            return
-        pose, dropouts = self._source.latest(t), self._source.stats().dropouts
-        new_pose = pose is not None and pose is not self._last_pose
-        if not new_pose and dropouts == self._last_dropouts:
-            return
-        frame: dict[str, SdkRigidBody] = {}
-        if new_pose:
-            w, x, y, z = (float(c) for c in pose.quaternion)
-            frame = {self._name: SdkRigidBody(self._name, pose.position.astype(np.float32), SdkQuaternion(w, x, y, z))}
-        self._last_pose, self._last_dropouts = pose, dropouts
-        with self._cond:
-            self._ready = frame
-            self._seq += 1
-            self._cond.notify_all()
-
-    def waitForNextFrame(self) -> None:  # noqa: N802 (the SDK's name)
-        with self._cond:
-            self._cond.wait_for(lambda: self._seq > self._consumed or self._closed)
-            if self._closed:
-                raise MocapError("simulated mocap closed")
-            self._consumed = self._seq
-            self._bodies = self._ready
-
-    @property
-    def rigidBodies(self) -> dict[str, SdkRigidBody]:  # noqa: N802 (the SDK's name)
-        return self._bodies
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-        self._source.close()
-        remove = getattr(self._sim, "remove_step_observer", None)
-        if remove is not None:
-            remove(self._on_step)
+        super().__init__({body_name: sim}, rate_hz=rate_hz, position_noise=position_noise,
+                         attitude_noise=attitude_noise, latency=latency, dropout_prob=dropout_prob, seed=seed)
 
 
 @dataclass(frozen=True)
@@ -373,6 +343,7 @@ def describe(hw: HardwareBackend) -> str:
 
 
 __all__ = [
-    "CrazyflieBackend", "HARDWARE_ERRORS", "HardwareBackend", "SimulatedHardware", "SimulatedMotionCapture", "cf_session",
-    "describe", "firmware_params", "flight_config", "hardware_backend", "robot_for", "simulated_hardware",
+    "CrazyflieBackend", "HARDWARE_ERRORS", "HardwareBackend", "RobotLink", "SimulatedHardware", "SimulatedMotionCapture",
+    "cf_session", "connect_robot", "describe", "firmware_params", "flight_config", "hardware_backend", "robot_for",
+    "simulated_hardware",
 ]
