@@ -147,3 +147,10 @@ def _stack_duration(cfg: TrajectoryConfig, level: int, ground_spacing: float) ->
     ramp = cfg.ramp_duration
     target = cfg.duration - min(ramp, 0.5 * cfg.duration) + phase * cfg.radius / cfg.speed
     return 2.0 * target if target <= ramp else target + ramp
+
+
+def stack_level(cfg: TrajectoryConfig, level: int, stack_spacing: float, ground_spacing: float) -> TrajectoryConfig:
+    """The pattern of stack level ``level``: ``stack_spacing * level`` higher, and long enough longer
+    to land ``ground_spacing`` further along the circle than level 0 (as ``fleet_references`` flies it)."""
+    return dataclasses.replace(cfg, height=cfg.height + level * stack_spacing,
+                               duration=_stack_duration(cfg, level, ground_spacing))

@@ -134,7 +134,7 @@ def calibrate(
     """Fly the hover with ``fly`` (default: ``cfknode.app.mission.run_flight``), estimate, and
     write ``mass`` and ``hover_thrust`` into the robot's entry of ``hardware.robots_file``."""
     if write and not cfg.hardware.robots_file:
-        raise ConfigError("calibrate writes into your robots file: set hardware.robots_file (--robots FILE); "
+        raise ConfigError("calibrate writes into your robots file: set hardware.robots_file (--robots-file FILE); "
                           "the packaged example is not edited")
     robot = load_robot(cfg.hardware.robots_file or None, cfg.hardware.robot)
     hover_cfg = calibration_config(cfg, height=height, hover_s=hover_s)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from cfknode.app.cli import UsageError
 from cfknode.app.commands.fly import FLAGS, add_config_arguments, add_hardware_arguments, config_from_args
 
 HELP = "hover briefly and write the robot's hover thrust command and mass to the robots file"
@@ -20,8 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = {k: v for k, v in FLAGS.items() if k in ("backend", "robot", "robots", "mocap", "mocap_host", "log_dir")}
+    flags = {k: v for k, v in FLAGS.items() if k in ("backend", "robot", "robots_file", "mocap", "mocap_host", "log_dir")}
     cfg = config_from_args(args, flags)
+    if len(args.robot_names) > 1:
+        raise UsageError("calibrate flies one robot: --robot NAME (or --robots NAME)")
     from cfknode.app.backends.calibrate import CalibrationError, calibrate
     from cfknode.app.mission import MissionError
 

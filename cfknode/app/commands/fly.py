@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from pathlib import Path
 from typing import Any
 
 from cfknode.app.cli import UsageError
@@ -29,7 +30,7 @@ FLAGS: dict[str, str] = {
     "uri": "radio.uri",
     "log_dir": "log.dir",
     "robot": "hardware.robot",
-    "robots": "hardware.robots_file",
+    "robots_file": "hardware.robots_file",
     "mocap": "hardware.mocap_type",
     "mocap_host": "hardware.mocap_host",
     "fleet": "fleet.size",
@@ -46,7 +47,11 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
 def add_hardware_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=["sim", "cf"])
     p.add_argument("--robot", help="robot in the robots file (also the mocap rigid-body name)")
-    p.add_argument("--robots", help="Crazyswarm2-style robots YAML (default: the packaged example)")
+    p.add_argument("--robots", metavar="NAMES",
+                   help="robots of the robots file to fly together, comma-separated (cf1,cf2,cf3; one name is "
+                        "--robot NAME); docs/fleet.md")
+    p.add_argument("--robots-file", dest="robots_file", metavar="PATH",
+                   help="Crazyswarm2-style robots YAML (default: the packaged example)")
     p.add_argument("--mocap", choices=["vicon", "optitrack", "qualisys", "vrpn", "mock"], help="motion capture type")
     p.add_argument("--mocap-host", dest="mocap_host", help="motion capture host name or address")
     p.add_argument("--force", action="store_true", help="fly despite failed pre-flight checks (logged)")
@@ -80,8 +85,42 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"name hint for the log file (up to {NAME_MAX} of A-Z a-z 0-9 . _ -)")
 
 
+def robots_argument(args: argparse.Namespace) -> tuple[str, ...]:
+    """The robot names of ``--robots``, with ``args.robot`` and ``args.robots_file`` settled.
+
+    ``--robots`` once named the robots file: a value that is an existing file or ends in
+    .yaml/.yml is still taken as the file, with a one-line deprecation warning on stderr."""
+    value = getattr(args, "robots", None)
+    if value is None:
+        return ()
+    if Path(value).is_file() or value.lower().endswith((".yaml", ".yml")):
+        if getattr(args, "robots_file", None) is not None:
+            raise UsageError(f"--robots {value} is a robots file, and --robots-file is given too: give one")
+        print(f"cfknode: warning: --robots FILE is deprecated, use --robots-file {value} "
+              "(--robots now names the robots to fly)", file=sys.stderr)
+        args.robots_file = value
+        return ()
+    names = tuple(n.strip() for n in value.split(","))
+    if not all(names):
+        raise UsageError(f"--robots takes robot names separated by commas (cf1,cf2), got {value!r}")
+    if len(names) == 1:
+        if getattr(args, "robot", None) not in (None, names[0]):
+            raise UsageError(f"--robot {args.robot} and --robots {names[0]} name different robots: give one")
+        args.robot = names[0]
+    elif getattr(args, "robot", None) is not None:
+        raise UsageError("--robot flies one robot and --robots several: give one")
+    return names
+
+
 def config_from_args(args: argparse.Namespace, flags: dict[str, str] = FLAGS) -> Config:
+    names = robots_argument(args)
+    args.robot_names = names
     overrides: dict[str, Any] = {}
+    if len(names) > 1:
+        if getattr(args, "backend", None) == "sim":
+            raise UsageError("--robots flies robots from the robots file (backend cf); --fleet N flies a "
+                             "simulated fleet")
+        overrides["backend"] = "cf"
     for flag, key in flags.items():
         value = getattr(args, flag, None)
         if value is not None:
@@ -106,6 +145,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--name must be 1 to {NAME_MAX} of the characters A-Z a-z 0-9 . _ - "
                          f"(it names the log file), got {shown!r} ({len(args.name)} characters)")
     cfg = config_from_args(args)  # validate before importing the heavy parts
+    if len(args.robot_names) > 1:
+        from cfknode.app.commands.fly_fleet import run_robots_command
+
+        return run_robots_command(cfg, args.robot_names, args)
     if cfg.fleet.size >= 2:
         from cfknode.app.commands.fly_fleet import run_fleet_command
 

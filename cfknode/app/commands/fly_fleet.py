@@ -1,10 +1,12 @@
-"""``cfknode fly --fleet N``: fly a simulated fleet and print one line per drone (docs/fleet.md)."""
+"""``cfknode fly --fleet N`` (a simulated fleet) and ``cfknode fly --robots cf1,cf2`` (robots from the
+robots file): fly them and print one line per drone (docs/fleet.md)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from typing import Any, Sequence
 
 from cfknode.app.config import Config
 
@@ -18,6 +20,32 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
     result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
+    return report(cfg, result, args)
+
+
+def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespace) -> int:
+    """Fly the named robots together in real time; exit status as for ``--fleet``, and 1 when a
+    robot could not be connected or failed its pre-flight checks."""
+    from rich.console import Console
+
+    from cfknode.app.fleet_robots import run_robot_fleet
+    from cfknode.app.mission import MissionError
+
+    out = sys.stderr if args.json else sys.stdout
+    t = cfg.trajectory
+    print(f"cfknode fly: robots {', '.join(names)} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
+          f"for {t.duration} s, controller {cfg.controller.kind}, real time", file=out)
+    try:  # Ctrl-C goes to every robot's supervisor (cfknode/app/fleet.py)
+        result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True))
+    except MissionError as exc:
+        print(f"cfknode: error: {exc}", file=sys.stderr)
+        return 1
+    return report(cfg, result, args)
+
+
+def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
+    """Print a fleet's result (one line per drone, the fleet's events, closest approach, radios)."""
+    out = sys.stderr if args.json else sys.stdout
     if args.json:
         print(json.dumps({
             "log": result.log_path,

@@ -1,0 +1,162 @@
+"""A fleet of named robots from the robots file: ``cfknode fly --robots cf1,cf2,cf3`` (docs/fleet.md).
+
+The hardware counterpart of ``run_fleet`` (cfknode/app/fleet.py), sharing its coordinator,
+log channels, pre-flight checks, flight and summary: every robot flies its own estimator,
+``Controller`` and ``Supervisor`` in one event loop, on one wall clock (real time, not
+lockstep), with its own link and one shared mocap connection (backends/robot_fleet.py).
+
+Before anything connects, the references from the robots' ``initial_position``s are checked
+for ``fleet.min_separation`` and the radios (from the robots' real URIs) for their packet
+budget. After the pre-flight checks, the references are rebuilt from where the mocap sees
+each robot and checked again, so the flight that takes off is the flight that was checked.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from cfknode.app.backends.robots import Robot, load_robots
+from cfknode.app.config import Config, ConfigError
+from cfknode.app.fleet import FleetResult, fly_drones, preflight
+from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
+from cfknode.flight.trajectory import make_trajectory
+from cfknode.safety.separation import refusal
+
+_logger = logging.getLogger(__name__)
+
+
+def select_robots(cfg: Config, names: Sequence[str]) -> list[Robot]:
+    """The named robots of ``hardware.robots_file``; one-line ``ConfigError`` for an unknown,
+    disabled or repeated name, listing the robots that can fly."""
+    file = load_robots(cfg.hardware.robots_file or None)
+    repeated = sorted({n for n in names if list(names).count(n) > 1})
+    if repeated:
+        raise ConfigError(f"--robots names {', '.join(repeated)} more than once")
+    unknown = [n for n in names if n not in file.robots]
+    disabled = [n for n in names if n in file.robots and not file.robots[n].enabled]
+    if unknown or disabled:
+        enabled = [n for n, r in file.robots.items() if r.enabled]
+        off = [n for n, r in file.robots.items() if not r.enabled]
+        what = "; ".join(part for part in (
+            f"no robot {', '.join(unknown)}" if unknown else "",
+            f"{', '.join(disabled)} disabled (enabled: false)" if disabled else "") if part)
+        raise ConfigError(f"--robots: {what} in {file.path}; known robots: {', '.join(enabled) or 'none'}"
+                          + (f" (disabled: {', '.join(off)})" if off else ""))
+    return [file.robots[n] for n in names]
+
+
+def robot_references(cfg: Config, starts: Sequence[Sequence[float]]) -> list[HoldableReference]:
+    """Each robot's reference, taking off from where it stands (``starts``), in ``fleet.layout``.
+
+    ``ring``: robot i flies the pattern rotated by 2 pi i / N about its centre; ``stack``:
+    robot i flies it ``fleet.stack_spacing * i`` higher (and lands ``fleet.ground_spacing``
+    further along the circle), as ``--fleet`` does. The take-off goes from the robot's own
+    start to its first point."""
+    traj, fleet = cfg.trajectory, cfg.fleet
+    n = len(starts)
+    center = np.array([float(traj.center[0]), float(traj.center[1]), 0.0])
+    refs: list[HoldableReference] = []
+    for i, start in enumerate(starts):
+        p0 = np.asarray(start, dtype=float)
+        if fleet.layout == "ring":
+            angle = 2.0 * math.pi * i / n
+            # Built from the start turned back, so the turned reference starts where the robot stands.
+            c, s = math.cos(-angle), math.sin(-angle)
+            d = p0 - center
+            local = center + np.array([c * d[0] - s * d[1], s * d[0] + c * d[1], d[2]])
+            ref: Any = RotatedReference(make_trajectory(traj, local), center[:2], angle)
+        elif fleet.layout == "stack":
+            ref = make_trajectory(stack_level(traj, i, fleet.stack_spacing, fleet.ground_spacing), p0)
+        else:
+            raise ConfigError(f"config key 'fleet.layout' must be ring or stack, got {fleet.layout!r}")
+        refs.append(HoldableReference(ref))
+    return refs
+
+
+def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], list[Config], dict[str, float]]:
+    """Everything that can be refused before connecting: the settings, the names, the references
+    from the robots' initial positions (separation) and the radios (packet budget, real URIs).
+    Returns the robots, each one's flight config and the packets/s per radio."""
+    from cfknode.app.backends.robot_fleet import robot_config
+    from cfknode.sim_backend.faults import check_faults
+
+    if len(names) < 2:
+        raise ConfigError("a fleet of robots needs at least two names (--robots cf1,cf2)")
+    if cfg.backend != "cf":
+        raise ConfigError("--robots flies robots from the robots file: backend cf (leave --backend out, or cf)")
+    if cfg.fleet.size >= 2:
+        raise ConfigError("--robots and --fleet (fleet.size) are two kinds of fleet: give one")
+    if cfg.online.enabled:
+        raise ConfigError("config key 'online.enabled': online learning is not wired for fleet flights")
+    if cfg.controller.adaptation == "oracle":
+        raise ConfigError("controller.adaptation oracle reads the simulator's true mass: simulation only (backend sim)")
+    check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
+    robots = select_robots(cfg, names)
+    configs = [robot_config(cfg, r) for r in robots]
+    refs = robot_references(cfg, [r.initial_position for r in robots])
+    radio_pps = preflight(cfg, names, configs, refs)
+    return robots, configs, radio_pps
+
+
+def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots", console: Any = None) -> FleetResult:
+    """Fly the named robots together; ``ConfigError`` for a refused fleet, ``MissionError`` for
+    a robot that could not be connected or failed its pre-flight checks."""
+    from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
+    from cfknode.app.backends.robot_fleet import RobotFleetBackend
+    from cfknode.app.flight_checks import refuse_unflyable
+    from cfknode.app.mission import MissionError, build_controller, build_model_slot
+    from cfknode.flight.tick_guard import hand_back
+    from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
+
+    robots, configs, radio_pps = check_robot_fleet(cfg, names)
+    forced: list[dict[str, Any]] = []
+    for robot, c in zip(robots, configs):  # robots may differ in mass and thrust: each is checked
+        forced.extend(refuse_unflyable(c, where=f"robot {robot.name}"))
+    models = [build_model_slot(c) for c in configs]
+    mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts
+    boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), r.name, exclusive=not r.uri.startswith("sim://"))
+             for r in robots]
+    try:
+        for box in boxes:
+            box.open()
+    except (MailboxError, FlightRunning) as exc:
+        for box in boxes:
+            box.close()
+        if isinstance(exc, FlightRunning):
+            raise MissionError(f"take-off refused: {exc}") from None
+        raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
+    try:
+        with RobotFleetBackend.open(cfg, robots, console) as backend:
+            # Where the mocap sees them, within the pre-flight tolerance of their initial positions.
+            refs = robot_references(cfg, [d.start_position for d in backend.drones])
+            line = refusal(list(names), [r.inner for r in refs], cfg.fleet.min_separation)
+            if line is not None:
+                raise ConfigError(line)
+
+            def handback() -> list[dict[str, Any]]:
+                out = []
+                for d in backend.drones:
+                    errors: list[str] = []
+
+                    def sink(part: str, exc: BaseException, errors: list[str] = errors) -> None:
+                        errors.append(f"{part} failed: {type(exc).__name__}: {exc}")
+                        _logger.error("%s: %s", d.hw.robot.name, errors[-1])
+
+                    extra = hand_back(d.radio.shutdown, d.after_handback, sink)
+                    out.append({**extra, **({"internal_errors": errors} if errors else {})})
+                return out
+
+            return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
+                              handback)
+    except HARDWARE_ERRORS as exc:
+        raise MissionError(str(exc)) from exc
+    finally:
+        for box in boxes:
+            box.close()
+
+
+__all__ = ["check_robot_fleet", "robot_references", "run_robot_fleet", "select_robots"]
