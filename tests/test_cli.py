@@ -92,7 +92,7 @@ def test_a_missing_crazyradio_shows_only_the_clean_message(tmp_path):
     robots = tmp_path / "robots.yaml"
     text = example_robots_path().read_text()
     robots.write_text(text.replace("radio://0/80/2M/E7E7E7E7E7 ", "radio://9/80/2M/E7E7E7E7E7 "))
-    argv = ["fly", "--backend", "cf", "--mocap", "mock", "--robots", str(robots), "--headless",
+    argv = ["fly", "--backend", "cf", "--mocap", "mock", "--robots-file", str(robots), "--headless",
             "--log-dir", str(tmp_path)]
     proc = _cfknode(*argv)
     assert proc.returncode == 1

@@ -14,6 +14,10 @@ pair hovers in place for ``fleet.hold_s``, then lands) and applies ``fleet.on_fa
 drone's supervisor lands or stops it. One MCAP log holds every drone's channels under its name
 (``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
 --all`` reaches them all.
+
+A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet_robots.py) shares all of this:
+``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
+that are ``Backend``s, on a lockstep member clock or on one wall clock.
 """
 
 from __future__ import annotations
