@@ -7,7 +7,10 @@ back or the log without its summary:
 
 - before the flight has a supervisor (compiling the MPC, starting the trainer, connecting):
   SIGTERM and SIGHUP raise ``StopSignal`` (a ``KeyboardInterrupt``) as Ctrl-C does, so
-  nothing takes off and everything opened so far is closed on the way out;
+  nothing takes off and everything opened so far is closed on the way out. Native code that
+  calls back into Python (CasADi building the MPC) can swallow that exception: a signal the
+  process went on after is handed to the target when ``route`` is called, so it still refuses
+  the take-off;
 - once ``route(target)`` has been called (with the supervisor, just before take-off): every
   stop signal goes to ``target.interrupt(name)``. Before the loop's first tick that refuses
   the take-off; after its last tick (the hand-back, the summary) the flight is already ending
@@ -53,11 +56,17 @@ class ProcessSignals:
         self._previous: dict[signal.Signals, Any] = {}
         self._target: Interruptible | None = None
         self._routed = 0
+        self._unwound: list[str] = []  # raised as StopSignal before there was a target
         self.received: list[str] = []  # every stop signal this context handled, by name
 
     def route(self, target: Interruptible) -> None:
-        """From now on stop signals go to ``target`` (a ``Supervisor``)."""
+        """From now on stop signals go to ``target`` (a ``Supervisor``); one raised before that
+        which did not end the process (swallowed on the way) goes to it now."""
         self._target = target
+        for name in self._unwound[:ROUTED_BEFORE_EXIT]:
+            self._routed += 1
+            target.interrupt(name)
+        self._unwound.clear()
 
     def __enter__(self) -> "ProcessSignals":
         if threading.current_thread() is not threading.main_thread():
@@ -80,6 +89,7 @@ class ProcessSignals:
         self.received.append(name)
         target = self._target
         if target is None:
+            self._unwound.append(name)
             raise StopSignal(signum)
         self._routed += 1
         if self._routed > ROUTED_BEFORE_EXIT:

@@ -124,13 +124,15 @@ def test_process_signals_route_then_restore():
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.01)
         assert raised.value.signum == signal.SIGTERM
+        # The process went on after it (here the test caught it; CasADi's callbacks can swallow
+        # it while the MPC is built): the supervisor gets it, so the take-off is refused.
         signals.route(target)
+        assert target.got == ["SIGTERM"]
         os.kill(os.getpid(), signal.SIGHUP)
-        os.kill(os.getpid(), signal.SIGINT)
         with pytest.raises(StopSignal):  # a third routed signal: a way out of a hung hand-back
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.01)
-    assert target.got == ["SIGHUP", "SIGINT"]
-    assert signals.received == ["SIGTERM", "SIGHUP", "SIGINT", "SIGTERM"]
+    assert target.got == ["SIGTERM", "SIGHUP"]
+    assert signals.received == ["SIGTERM", "SIGHUP", "SIGINT"]
     assert signal.getsignal(signal.SIGTERM) is mine
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
