@@ -13,7 +13,8 @@ their packet budget (cfknode/app/radio_budget.py); either refuses in one line. I
 pair hovers in place for ``fleet.hold_s``, then lands) and applies ``fleet.on_fault`` when one
 drone's supervisor lands or stops it. One MCAP log holds every drone's channels under its name
 (``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
---all`` reaches them all.
+--all`` reaches them all. Stop signals (SIGINT, SIGTERM, SIGHUP) go to every drone's supervisor
+through ``FleetCoordinator.interrupt``: the first lands them all, a second stops them all.
 
 A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet_robots.py) shares all of this:
 ``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
@@ -26,6 +27,7 @@ import asyncio
 import dataclasses
 import re
 import signal
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -46,12 +48,15 @@ from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
+from cfknode.safety.operator import STOP_SIGNALS
+from cfknode.safety.part_errors import signal_stop_text
 from cfknode.safety.separation import SeparationWatch, refusal
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
 
 _FLYING = ("TAKEOFF", "TRACK", "LAND")
 _FAILED = ("LAND", "EMERGENCY", "IDLE", "LANDED")
-_OWN_CAUSES = ("separation", "fleet_fault")  # the fleet's own landings never trigger the fault policy
+# The fleet's own landings never trigger the fault policy; nor do stop signals, which every drone got.
+_OWN_CAUSES = ("separation", "fleet_fault", "sigint", "sigterm", "sighup")
 
 
 @dataclass(frozen=True)
@@ -162,18 +167,36 @@ class FleetCoordinator:
         self._p: list[np.ndarray | None] = [None] * len(names)
         self._land_at: dict[int, tuple[float, str, str]] = {}
         self._faulted: set[int] = set()
+        self._signals: deque[str] = deque()  # stop signals not yet on /events (a handler must not write the log)
+        self._signals_logged = 0
         self.events: list[str] = []
 
     def tap(self, i: int) -> "_Tap":
         return _Tap(self, i)
 
-    def interrupt(self) -> None:
-        """Ctrl-C for the whole fleet: every drone's supervisor gets it."""
+    def interrupt(self, signal_name: str = "SIGINT") -> None:
+        """A stop signal for the whole fleet: every drone's supervisor gets it (the first lands,
+        a second stops the motors). Safe in a signal handler: it only appends to queues."""
+        self._signals.append(signal_name)
         for sup in self._sups:
-            sup.interrupt()
+            sup.interrupt(signal_name)
+
+    def log_signals(self, t: float) -> None:
+        """Put the stop signals received since the last call on ``/events`` at time ``t``."""
+        while self._signals:
+            name = self._signals.popleft()
+            self._signals_logged += 1
+            text = signal_stop_text(name)
+            if self._signals_logged == 1:
+                again = "Ctrl-C again" if name == "SIGINT" else f"another {name} (or Ctrl-C)"
+                self._event(t, "warning", f"{text}: every drone lands; {again} stops them all")
+            else:
+                self._event(t, "error", f"{text} again: every drone stops its motors")
 
     def on_tick(self, i: int, info: TickInfo) -> None:
         t = info.t
+        if self._signals:
+            self.log_signals(t)
         pending = self._land_at.get(i)
         if pending is not None and t >= pending[0] - 1e-9:
             del self._land_at[i]
@@ -232,8 +255,10 @@ class _Tap:
         self.coordinator.on_tick(self.index, tick)
 
 
-def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
-    """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary."""
+def run_fleet(cfg: Config, name_hint: str = "fleet",
+              on_coordinator: Callable[[FleetCoordinator], None] | None = None) -> FleetResult:
+    """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary;
+    ``on_coordinator`` as for ``fly_drones``."""
     names, configs, refs = drone_configs(cfg)
     from cfknode.sim_backend.faults import check_faults
 
@@ -261,7 +286,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
                         for n, d in zip(names, backend.drones)]
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback)
+                              handback, on_coordinator)
     finally:
         for box in boxes:
             box.close()
@@ -270,12 +295,15 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
 def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], refs: Sequence[HoldableReference],
                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
                name_hint: str, forced: Sequence[dict[str, Any]],
-               handback: Callable[[], Sequence[dict[str, Any]]]) -> FleetResult:
+               handback: Callable[[], Sequence[dict[str, Any]]],
+               on_coordinator: Callable[[FleetCoordinator], None] | None = None) -> FleetResult:
     """Fly connected drones (simulated or real: each a ``Backend``) under one coordinator and one log.
 
     ``handback()`` hands every drone back once all flight loops ended and returns each one's
     summary extras (firmware state, pre-flight report). On a wall clock the solve deadline and
-    the supervisor's deadline watch apply, as for a single hardware flight."""
+    the supervisor's deadline watch apply, as for a single hardware flight.
+    ``on_coordinator(coordinator)`` is called once before take-off, for the stop signals that
+    arrive outside the flight loops (``ProcessSignals.route``)."""
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
@@ -297,6 +325,8 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
             parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                      trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                      observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+        if on_coordinator is not None:
+            on_coordinator(coordinator)
         records = asyncio.run(_gather(drones, parts, coordinator))
         after = handback()
         results = []
@@ -313,6 +343,7 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
             results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome))
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
+        coordinator.log_signals(t_end)  # the ones no tick logged (during the hand-back)
         flog.write("/summary", t_end, {"fleet": list(names), "min_separation_m": closest, "radio_pps": radio_pps,
                                        "outcomes": {r.name: r.outcome.message for r in results}})
     result = FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
@@ -323,11 +354,14 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
 async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
                   coordinator: FleetCoordinator) -> list[FlightRecord]:
     loop = asyncio.get_running_loop()
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}  # ProcessSignals' own, under the CLI
 
-    def own_sigint() -> None:
-        # Each loop routes SIGINT to its own supervisor while it runs; the fleet's Ctrl-C goes to all.
+    def own_signals() -> None:
+        # Each loop routes the stop signals to its own supervisor while it runs (and takes them
+        # back when it ends); the fleet's go to all, so they are taken over again each time.
         try:
-            loop.add_signal_handler(signal.SIGINT, coordinator.interrupt)
+            for sig in STOP_SIGNALS:
+                loop.add_signal_handler(sig, coordinator.interrupt, sig.name)
         except (RuntimeError, ValueError, NotImplementedError):
             pass
 
@@ -338,17 +372,18 @@ async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
             leave = getattr(drone.clock, "leave", None)  # a lockstep member must not hold the others back
             if leave is not None:
                 leave()
-            own_sigint()
+            own_signals()
 
     tasks = [asyncio.ensure_future(one(d, p)) for d, p in zip(drones, parts)]
-    await asyncio.sleep(0)  # every loop has started (and taken SIGINT for itself)
-    own_sigint()
+    await asyncio.sleep(0)  # every loop has started (and taken the stop signals for itself)
+    own_signals()
     try:
         return list(await asyncio.gather(*tasks))
     finally:
         try:
-            loop.remove_signal_handler(signal.SIGINT)
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
+                signal.signal(sig, previous[sig] if previous[sig] is not None else signal.SIG_DFL)
         except (RuntimeError, ValueError, NotImplementedError):
             pass  # not the main thread: the handlers were never ours
 

@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from cfknode.app.backends.robots import Robot, load_robots
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet import FleetResult, fly_drones, preflight
+from cfknode.app.fleet import FleetCoordinator, FleetResult, fly_drones, preflight
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.safety.separation import refusal
@@ -102,9 +102,11 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
     return robots, configs, radio_pps
 
 
-def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots", console: Any = None) -> FleetResult:
+def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots", console: Any = None,
+                    on_coordinator: Callable[[FleetCoordinator], None] | None = None) -> FleetResult:
     """Fly the named robots together; ``ConfigError`` for a refused fleet, ``MissionError`` for
-    a robot that could not be connected or failed its pre-flight checks."""
+    a robot that could not be connected or failed its pre-flight checks. ``on_coordinator`` as
+    for ``fly_drones``."""
     from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
     from cfknode.app.backends.robot_fleet import RobotFleetBackend
     from cfknode.app.flight_checks import refuse_unflyable
@@ -151,7 +153,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
                 return out
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback)
+                              handback, on_coordinator)
     except HARDWARE_ERRORS as exc:
         raise MissionError(str(exc)) from exc
     finally:

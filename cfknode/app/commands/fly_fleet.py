@@ -14,12 +14,15 @@ from cfknode.app.config import Config
 def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     """Exit status 0 when every drone flew its mission to the end and the log is complete, else 1."""
     from cfknode.app.fleet import run_fleet
+    from cfknode.safety.process_signals import ProcessSignals
 
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
-    result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
+    # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
+    with ProcessSignals() as signals:
+        result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route)
     return report(cfg, result, args)
 
 
@@ -30,13 +33,16 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
 
     from cfknode.app.fleet_robots import run_robot_fleet
     from cfknode.app.mission import MissionError
+    from cfknode.safety.process_signals import ProcessSignals
 
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
     print(f"cfknode fly: robots {', '.join(names)} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}, real time", file=out)
-    try:  # Ctrl-C goes to every robot's supervisor (cfknode/app/fleet.py)
-        result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True))
+    try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet.py)
+        with ProcessSignals() as signals:
+            result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
+                                     on_coordinator=signals.route)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1
