@@ -30,10 +30,12 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.backends.sim_fleet import FleetDrone, FleetSimBackend
 from cfknode.app.config import Config, ConfigError
+from cfknode.app.fleet_learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
+from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
-from cfknode.app.mission import build_controller, build_model_slot, build_supervisor
+from cfknode.app.mission import _controller_label, build_controller, build_model_slot, build_supervisor
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
 from cfknode.app.ui.summary import FlightSummary, compute_summary
 from cfknode.flight.controller import Controller, TickInfo
@@ -56,6 +58,7 @@ class DroneResult:
     summary: FlightSummary
     record: FlightRecord
     outcome: Outcome
+    learner: Any = None  # the drone's OnlineLearner when it learned online
 
 
 @dataclass(frozen=True)
@@ -101,8 +104,6 @@ def drone_configs(cfg: Config) -> tuple[list[str], list[Config], list[HoldableRe
     m = re.fullmatch(r"sim://(\d+)", cfg.radio.uri)
     if cfg.backend != "sim" or m is None:
         raise ConfigError("a fleet flies in simulation only (backend sim, radio.uri sim://N)")
-    if cfg.online.enabled:
-        raise ConfigError("config key 'online.enabled': online learning is not wired for fleet flights")
     base = int(m.group(1))
     ground_z = float(cfg.sim.initial_position[2])
     try:
@@ -230,7 +231,8 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
     radio_pps = preflight(cfg, names, configs, refs)
     forced = refuse_unflyable(cfg)  # one vehicle for all drones: checked once
-    models = [build_model_slot(c) for c in configs]
+    check_online(cfg)
+    models = [online_model_slot(c, build_model_slot(c)) for c in configs]  # online: each drone its own slot
     mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts
     boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), f"sim-{n}") for n in names]
     try:
@@ -241,8 +243,8 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
             box.close()
         raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
     try:
-        with FleetSimBackend.open(names, configs) as backend:
-            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+        with fleet_trainers(configs) as trainers, FleetSimBackend.open(names, configs) as backend:
+            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced, trainers)
     finally:
         for box in boxes:
             box.close()
@@ -250,7 +252,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
 
 def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs: Sequence[HoldableReference],
                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
-               name_hint: str, forced: Sequence[dict[str, Any]]) -> FleetResult:
+               name_hint: str, forced: Sequence[dict[str, Any]], trainers: Sequence[Any]) -> FleetResult:
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, backend.drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
@@ -260,39 +262,54 @@ def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs
                                  inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
                 for d, ref, log in zip(backend.drones, refs, logs)]
         coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
-        parts = []
-        for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(backend.drones, refs, sups, logs, models, mpcs,
-                                                                      boxes)):
-            ground_z = float(d.start_position[2])
-            controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
-                                    deadline_s=None, ground_z=ground_z)
-            parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
-                                     trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
-                                     observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
-        records = asyncio.run(_gather(backend.drones, parts, coordinator))
-        for d in backend.drones:
-            d.radio.shutdown()
-        firmware = backend.settle_after_handback()
-        results = []
-        for name, d, rec, sup, ref in zip(names, backend.drones, records, sups, refs):
-            outcome = sup.outcome()
-            summary = compute_summary(
-                t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
-                window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
-                extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
-                       "safety_state": outcome.state.value, "safety_cause": outcome.cause,
-                       "fallback_ticks": rec.fallbacks, "controller": cfg.controller.kind, "backend": "sim",
-                       "lockstep": True, "firmware_after_shutdown": firmware[name],
-                       "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"], **rec.adaptation})
-            flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
-            results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome))
+        ground = [float(d.start_position[2]) for d in backend.drones]
+        sessions = fleet_sessions([d.config for d in backend.drones], models, logs, [d.clock for d in backend.drones],
+                                  trainers, ground)
+        with sessions as learners:
+            results = _fly_drones(cfg, backend, flog, names, refs, sups, logs, models, mpcs, boxes, learners, ground,
+                                  coordinator)
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
         flog.write("/summary", t_end, {"fleet": list(names), "min_separation_m": closest, "radio_pps": radio_pps,
                                        "outcomes": {r.name: r.outcome.message for r in results}})
-    result = FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
-                         flog.incomplete())
-    return result
+    # After close: closing writes the footer, which a full disk can refuse too.
+    return FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
+                       flog.incomplete())
+
+
+def _fly_drones(cfg: Config, backend: FleetSimBackend, flog: Any, names: Sequence[str],
+                refs: Sequence[HoldableReference], sups: Sequence[Supervisor], logs: Sequence[Any],
+                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], learners: Sequence[Any],
+                ground: Sequence[float], coordinator: FleetCoordinator) -> list[DroneResult]:
+    """Fly every drone to its end and write its summary (with its learner's fields when it learned online)."""
+    parts = []
+    for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(backend.drones, refs, sups, logs, models, mpcs, boxes)):
+        controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
+                                deadline_s=None, ground_z=ground[i])
+        if learners[i] is not None:
+            controller.observers.append(learners[i])
+        parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
+                                 trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
+                                 observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+    records = asyncio.run(_gather(backend.drones, parts, coordinator))
+    for d in backend.drones:
+        d.radio.shutdown()
+    firmware = backend.settle_after_handback()
+    results = []
+    for name, d, rec, sup, ref, learner in zip(names, backend.drones, records, sups, refs, learners):
+        outcome = sup.outcome()
+        online = learner.summary_fields() if learner is not None else {}
+        summary = compute_summary(
+            t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
+            window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
+            extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
+                   "safety_state": outcome.state.value, "safety_cause": outcome.cause, "fallback_ticks": rec.fallbacks,
+                   "controller": _controller_label(cfg, bool(cfg.controller.model), learner is not None),
+                   "backend": "sim", "lockstep": True, "firmware_after_shutdown": firmware[name],
+                   "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"], **rec.adaptation, **online})
+        flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
+        results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome, learner))
+    return results
 
 
 async def _gather(drones: Sequence[FleetDrone], parts: Sequence[FlightParts],

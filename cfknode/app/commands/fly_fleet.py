@@ -16,7 +16,8 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
-          f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
+          f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
+          "lockstep simulation", file=out)
     result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
     if args.json:
         print(json.dumps({
@@ -29,8 +30,10 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
         }, default=float))
     for d in result.drones:
         s = d.summary
+        models = s.extra.get("models_accepted")
+        learned = f", models accepted {models}" if models is not None else ""
         print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
-              f"p99 {s.compute_p99_ms:.2f} ms: {d.outcome.message}", file=out)
+              f"p99 {s.compute_p99_ms:.2f} ms{learned}: {d.outcome.message}", file=out)
     for event in result.events:
         print(f"fleet: {event}", file=out)
     radios = ", ".join(f"{r} {pps:g}/s" for r, pps in result.radio_pps.items())
