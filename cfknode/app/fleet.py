@@ -12,8 +12,9 @@ their packet budget (cfknode/app/radio_budget.py); either refuses in one line. I
 ``FleetCoordinator`` (a tick observer of every drone) watches the separation (too close: the
 pair hovers in place for ``fleet.hold_s``, then lands) and applies ``fleet.on_fault`` when one
 drone's supervisor lands or stops it. One MCAP log holds every drone's channels under its name
-(``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
---all`` reaches them all.
+(``/cf1/state``). With ``--online`` every drone learns as a single flight does, its rounds on one
+shared trainer process (cfknode/app/fleet_learning.py). Each drone has its own e-stop mailbox
+entry (``sim-cf1``), and ``cfknode estop --all`` reaches them all.
 """
 
 from __future__ import annotations
