@@ -119,8 +119,11 @@ class TrainOutcome:
     error: str = ""  # non-empty: the round failed (model is None)
 
 
-def trainer_main(conn: Connection, settings: TrainerSettings) -> None:
-    """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF."""
+def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = False) -> None:
+    """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF.
+
+    ``tagged``: one trainer serving several learners (a fleet); each request comes as ``(tag,
+    TrainRequest)`` and its outcome goes back as ``(tag, TrainOutcome)``, in arrival order."""
     for sig in IGNORED_SIGNALS:  # first, before the slow torch import (see IGNORED_SIGNALS)
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, IGNORED_SIGNALS)  # blocked by the parent while spawning
@@ -141,9 +144,10 @@ def trainer_main(conn: Connection, settings: TrainerSettings) -> None:
             return  # the flight process is gone
         if request is None:
             return
+        tag, request = request if tagged else (None, request)
         _maybe_fail_before(request.round, settings.inject)
         outcome = _train_round(request, settings)
-        conn.send(outcome)
+        conn.send((tag, outcome) if tagged else outcome)
 
 
 def _maybe_fail_before(round_: int, inject: FaultInjection) -> None:

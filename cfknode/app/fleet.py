@@ -15,6 +15,8 @@ drone's supervisor lands or stops it. One MCAP log holds every drone's channels 
 (``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
 --all`` reaches them all. Stop signals (SIGINT, SIGTERM, SIGHUP) go to every drone's supervisor
 through ``FleetCoordinator.interrupt``: the first lands them all, a second stops them all.
+With ``--online`` every drone learns as a single flight does, its rounds on one shared trainer
+process (cfknode/app/fleet_learning.py).
 
 A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet_robots.py) shares all of this:
 ``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
@@ -37,10 +39,12 @@ from cfknode import __version__
 from cfknode.app.backends.base import Backend
 from cfknode.app.backends.sim_fleet import FleetSimBackend
 from cfknode.app.config import Config, ConfigError
+from cfknode.app.fleet_learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
+from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
-from cfknode.app.mission import build_controller, build_model_slot, build_supervisor
+from cfknode.app.mission import _controller_label, build_controller, build_model_slot, build_supervisor
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
 from cfknode.app.ui.summary import FlightSummary, compute_summary
 from cfknode.flight.controller import Controller, TickInfo
@@ -66,6 +70,7 @@ class DroneResult:
     summary: FlightSummary
     record: FlightRecord
     outcome: Outcome
+    learner: Any = None  # the drone's OnlineLearner when it learned online
 
 
 @dataclass(frozen=True)
@@ -111,8 +116,6 @@ def drone_configs(cfg: Config) -> tuple[list[str], list[Config], list[HoldableRe
     m = re.fullmatch(r"sim://(\d+)", cfg.radio.uri)
     if cfg.backend != "sim" or m is None:
         raise ConfigError("a fleet flies in simulation only (backend sim, radio.uri sim://N)")
-    if cfg.online.enabled:
-        raise ConfigError("config key 'online.enabled': online learning is not wired for fleet flights")
     base = int(m.group(1))
     ground_z = float(cfg.sim.initial_position[2])
     try:
@@ -265,7 +268,8 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
     radio_pps = preflight(cfg, names, configs, refs)
     forced = refuse_unflyable(cfg)  # one vehicle for all drones: checked once
-    models = [build_model_slot(c) for c in configs]
+    check_online(cfg)
+    models = [online_model_slot(c, build_model_slot(c)) for c in configs]  # online: each drone its own slot
     mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts
     boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), f"sim-{n}") for n in names]
     try:
@@ -276,7 +280,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
             box.close()
         raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
     try:
-        with FleetSimBackend.open(names, configs) as backend:
+        with fleet_trainers(configs) as trainers, FleetSimBackend.open(names, configs) as backend:
             def handback() -> list[dict[str, Any]]:
                 for d in backend.drones:
                     d.radio.shutdown()
@@ -286,7 +290,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
                         for n, d in zip(names, backend.drones)]
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator)
+                              handback, on_coordinator, trainers)
     finally:
         for box in boxes:
             box.close()
@@ -296,14 +300,16 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
                name_hint: str, forced: Sequence[dict[str, Any]],
                handback: Callable[[], Sequence[dict[str, Any]]],
-               on_coordinator: Callable[[FleetCoordinator], None] | None = None) -> FleetResult:
+               on_coordinator: Callable[[FleetCoordinator], None] | None = None,
+               trainers: Sequence[Any] | None = None) -> FleetResult:
     """Fly connected drones (simulated or real: each a ``Backend``) under one coordinator and one log.
 
     ``handback()`` hands every drone back once all flight loops ended and returns each one's
     summary extras (firmware state, pre-flight report). On a wall clock the solve deadline and
     the supervisor's deadline watch apply, as for a single hardware flight.
     ``on_coordinator(coordinator)`` is called once before take-off, for the stop signals that
-    arrive outside the flight loops (``ProcessSignals.route``)."""
+    arrive outside the flight loops (``ProcessSignals.route``). ``trainers``: each drone's port on
+    the shared trainer when it learns online (``fleet_learning.fleet_trainers``), else None."""
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
@@ -316,39 +322,57 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
                                  inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
                 for d, ref, log in zip(drones, refs, logs)]
         coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
-        parts = []
-        for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(drones, refs, sups, logs, models, mpcs, boxes)):
-            ground_z = float(d.start_position[2])
-            deadline = d.config.safety.solve_deadline_s if sup.deadlines_apply else None
-            controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
-                                    deadline_s=deadline, ground_z=ground_z)
-            parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
-                                     trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
-                                     observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
         if on_coordinator is not None:
             on_coordinator(coordinator)
-        records = asyncio.run(_gather(drones, parts, coordinator))
-        after = handback()
-        results = []
-        for name, d, rec, sup, ref, extra in zip(names, drones, records, sups, refs, after):
-            outcome = sup.outcome()
-            summary = compute_summary(
-                t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
-                window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
-                extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
-                       "safety_state": outcome.state.value, "safety_cause": outcome.cause,
-                       "fallback_ticks": rec.fallbacks, "controller": cfg.controller.kind, "backend": d.config.backend,
-                       "lockstep": bool(d.clock.lockstep), **extra, **rec.adaptation})
-            flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
-            results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome))
+        ground = [float(d.start_position[2]) for d in drones]
+        ports = list(trainers) if trainers is not None else [None] * len(drones)
+        sessions = fleet_sessions([d.config for d in drones], models, logs, [d.clock for d in drones], ports, ground)
+        with sessions as learners:
+            results = _fly_drones(cfg, drones, flog, names, refs, sups, logs, models, mpcs, boxes, learners, ground,
+                                  coordinator, handback)
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
         coordinator.log_signals(t_end)  # the ones no tick logged (during the hand-back)
         flog.write("/summary", t_end, {"fleet": list(names), "min_separation_m": closest, "radio_pps": radio_pps,
                                        "outcomes": {r.name: r.outcome.message for r in results}})
-    result = FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
-                         flog.incomplete())
-    return result
+    # After close: closing writes the footer, which a full disk can refuse too.
+    return FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
+                       flog.incomplete())
+
+
+def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequence[str],
+                refs: Sequence[HoldableReference], sups: Sequence[Supervisor], logs: Sequence[Any],
+                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], learners: Sequence[Any],
+                ground: Sequence[float], coordinator: FleetCoordinator,
+                handback: Callable[[], Sequence[dict[str, Any]]]) -> list[DroneResult]:
+    """Fly every drone to its end and write its summary (with its learner's fields when it learned online)."""
+    parts = []
+    for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(drones, refs, sups, logs, models, mpcs, boxes)):
+        deadline = d.config.safety.solve_deadline_s if sup.deadlines_apply else None
+        controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
+                                deadline_s=deadline, ground_z=ground[i])
+        if learners[i] is not None:
+            controller.observers.append(learners[i])
+        parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
+                                 trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
+                                 observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+    records = asyncio.run(_gather(drones, parts, coordinator))
+    after = handback()
+    results = []
+    for name, d, rec, sup, ref, learner, extra in zip(names, drones, records, sups, refs, learners, after):
+        outcome = sup.outcome()
+        online = learner.summary_fields() if learner is not None else {}
+        summary = compute_summary(
+            t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
+            window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
+            extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
+                   "safety_state": outcome.state.value, "safety_cause": outcome.cause, "fallback_ticks": rec.fallbacks,
+                   "controller": _controller_label(cfg, bool(cfg.controller.model), learner is not None),
+                   "backend": d.config.backend, "lockstep": bool(d.clock.lockstep), **extra, **rec.adaptation,
+                   **online})
+        flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
+        results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome, learner))
+    return results
 
 
 async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],

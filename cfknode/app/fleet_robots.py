@@ -90,8 +90,6 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
         raise ConfigError("--robots flies robots from the robots file: backend cf (leave --backend out, or cf)")
     if cfg.fleet.size >= 2:
         raise ConfigError("--robots and --fleet (fleet.size) are two kinds of fleet: give one")
-    if cfg.online.enabled:
-        raise ConfigError("config key 'online.enabled': online learning is not wired for fleet flights")
     if cfg.controller.adaptation == "oracle":
         raise ConfigError("controller.adaptation oracle reads the simulator's true mass: simulation only (backend sim)")
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
@@ -109,7 +107,9 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
     for ``fly_drones``."""
     from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
     from cfknode.app.backends.robot_fleet import RobotFleetBackend
+    from cfknode.app.fleet_learning import fleet_trainers
     from cfknode.app.flight_checks import refuse_unflyable
+    from cfknode.app.learning import online_model_slot
     from cfknode.app.mission import MissionError, build_controller, build_model_slot
     from cfknode.flight.tick_guard import hand_back
     from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
@@ -118,7 +118,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
     forced: list[dict[str, Any]] = []
     for robot, c in zip(robots, configs):  # robots may differ in mass and thrust: each is checked
         forced.extend(refuse_unflyable(c, where=f"robot {robot.name}"))
-    models = [build_model_slot(c) for c in configs]
+    models = [online_model_slot(c, build_model_slot(c)) for c in configs]  # online: each robot its own slot
     mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts
     boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), r.name, exclusive=not r.uri.startswith("sim://"))
              for r in robots]
@@ -132,7 +132,8 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
             raise MissionError(f"take-off refused: {exc}") from None
         raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
     try:
-        with RobotFleetBackend.open(cfg, robots, console) as backend:
+        # Online learning: one shared trainer, up before any robot connects (docs/fleet.md#design).
+        with fleet_trainers(configs) as trainers, RobotFleetBackend.open(cfg, robots, console) as backend:
             # Where the mocap sees them, within the pre-flight tolerance of their initial positions.
             refs = robot_references(cfg, [d.start_position for d in backend.drones])
             line = refusal(list(names), [r.inner for r in refs], cfg.fleet.min_separation)
@@ -153,7 +154,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
                 return out
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator)
+                              handback, on_coordinator, trainers)
     except HARDWARE_ERRORS as exc:
         raise MissionError(str(exc)) from exc
     finally:

@@ -59,12 +59,14 @@ class TrainerClient:
         self.pid: int | None = None
         self.warmup_s = math.nan
         self.start_problem = ""  # why the last wait_ready failed, one line
+        self.tagged = False  # a shared trainer's protocol (trainer_main's ``tagged``)
 
     def start(self) -> None:
         """Spawn a trainer (non-blocking: it reports ``TrainerReady`` when torch is up)."""
         self._reap()
         parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=trainer_main, args=(child, self.settings), name="cfknode-trainer", daemon=True)
+        proc = self._ctx.Process(target=trainer_main, args=(child, self.settings, self.tagged), name="cfknode-trainer",
+                                 daemon=True)
         # The child inherits this thread's signal mask: with the stop signals blocked it cannot
         # die of a Ctrl-C meant for the flight before ``trainer_main`` ignores them. The parent
         # loses none: blocked here, they wait (or reach another thread) and are handled as usual.

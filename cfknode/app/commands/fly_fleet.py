@@ -19,7 +19,8 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
-          f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
+          f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
+          "lockstep simulation", file=out)
     # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
     with ProcessSignals() as signals:
         result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route)
@@ -38,7 +39,8 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
     print(f"cfknode fly: robots {', '.join(names)} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
-          f"for {t.duration} s, controller {cfg.controller.kind}, real time", file=out)
+          f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
+          "real time", file=out)
     try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet.py)
         with ProcessSignals() as signals:
             result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
@@ -63,8 +65,10 @@ def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
         }, default=float))
     for d in result.drones:
         s = d.summary
+        models = s.extra.get("models_accepted")
+        learned = f", models accepted {models}" if models is not None else ""
         print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
-              f"p99 {s.compute_p99_ms:.2f} ms: {d.outcome.message}", file=out)
+              f"p99 {s.compute_p99_ms:.2f} ms{learned}: {d.outcome.message}", file=out)
     for event in result.events:
         print(f"fleet: {event}", file=out)
     radios = ", ".join(f"{r} {pps:g}/s" for r, pps in result.radio_pps.items())
