@@ -222,8 +222,12 @@ class _Tap:
         self.coordinator.on_tick(self.index, tick)
 
 
-def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
-    """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary."""
+def run_fleet(cfg: Config, name_hint: str = "fleet", dashboard: Any = None) -> FleetResult:
+    """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary.
+
+    ``dashboard``: a live view (cfknode/app/ui/fleet_dashboard.py ``FleetDashboard``) whose
+    ``observers(i, drone, reference, controller, supervisor, coordinator)`` watch drone i; None: none.
+    """
     names, configs, refs = drone_configs(cfg)
     from cfknode.sim_backend.faults import check_faults
 
@@ -242,7 +246,8 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
         raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
     try:
         with FleetSimBackend.open(names, configs) as backend:
-            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+            return _fly_fleet(cfg, backend, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
+                              dashboard)
     finally:
         for box in boxes:
             box.close()
@@ -250,7 +255,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet") -> FleetResult:
 
 def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs: Sequence[HoldableReference],
                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
-               name_hint: str, forced: Sequence[dict[str, Any]]) -> FleetResult:
+               name_hint: str, forced: Sequence[dict[str, Any]], dashboard: Any = None) -> FleetResult:
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, backend.drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
@@ -269,6 +274,8 @@ def _fly_fleet(cfg: Config, backend: FleetSimBackend, names: Sequence[str], refs
             parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                      trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                      observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+        for i, (d, p) in enumerate(zip(backend.drones, parts) if dashboard is not None else ()):
+            p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
         records = asyncio.run(_gather(backend.drones, parts, coordinator))
         for d in backend.drones:
             d.radio.shutdown()

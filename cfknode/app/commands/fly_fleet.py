@@ -1,10 +1,12 @@
-"""``cfknode fly --fleet N``: fly a simulated fleet and print one line per drone (docs/fleet.md)."""
+"""``cfknode fly --fleet N``: fly a simulated fleet, with its live dashboard in a terminal, and print one
+line per drone (docs/fleet.md)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from typing import Any
 
 from cfknode.app.config import Config
 
@@ -17,7 +19,10 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     t = cfg.trajectory
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
-    result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
+    dashboard = fleet_dashboard(cfg, args)
+    result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", dashboard=dashboard)
+    if dashboard is not None and dashboard.error is not None:
+        print(f"cfknode: the dashboard failed ({dashboard.error}); the flight went on without it", file=sys.stderr)
     if args.json:
         print(json.dumps({
             "log": result.log_path,
@@ -39,3 +44,21 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     if result.log_incomplete is not None:
         print(f"cfknode: the flight log is {result.log_incomplete}", file=sys.stderr)
     return 0 if result.complete and result.log_incomplete is None else 1
+
+
+def fleet_dashboard(cfg: Config, args: argparse.Namespace) -> Any:
+    """The fleet's live view when the single flight would show its dashboard (a terminal, not
+    ``--headless``, ``dashboard.enabled``), on the same stream (stderr with ``--json``); else None."""
+    from rich.console import Console
+
+    from cfknode.app.ui.dashboard import should_show_dashboard
+    from cfknode.app.ui.fleet_dashboard import FleetDashboard, FleetStatus
+
+    console = Console(stderr=args.json)
+    if not should_show_dashboard(args, console.file, cfg.dashboard.enabled):
+        return None
+    t, c = cfg.trajectory, cfg.controller
+    title = f"{cfg.fleet.size} x {t.kind} r={t.radius} m ({cfg.fleet.layout}) - {c.kind} ({c.solver})"
+    status = FleetStatus(title, cfg.fleet.min_separation, show_mass=c.adaptation != "none",
+                         show_models=cfg.online.enabled)
+    return FleetDashboard(console, status, cfg.dashboard.refresh_hz)
