@@ -227,7 +227,8 @@ class ColumnSink:
         self.last_t: dict[str, float] = {}
 
     def add_alias(self, topic: str, like: str) -> None:
-        """Keep ``topic`` as ``like`` is kept (the same fields, or whole): a fleet drone's ``/cf1/state`` as ``/state``."""
+        """Keep ``topic`` as ``like`` is kept (the same fields, or whole): a fleet drone's ``/cf1/state``
+        as ``/state``."""
         if like in self.columns:
             self.times[topic] = array("d")
             self.columns[topic] = {name: _Column(col.kind, col.width) for name, col in self.columns[like].items()}

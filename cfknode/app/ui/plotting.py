@@ -8,8 +8,8 @@
 
 Several logs overlay on the same axes to compare controllers; each legend entry names the
 log and its controller. A fleet log (docs/fleet.md) overlays its drones, one line each named
-after the drone (``drones`` chooses some). A truncated log (the process killed mid-flight) plots up to its last
-complete record. Positions are the simulator's true ones when logged, else the estimate.
+after the drone (``drones`` chooses some). A truncated log (the process killed mid-flight)
+plots up to its last complete record. Positions are the simulator's true ones when logged, else the estimate.
 
 Logs are streamed and only the plotted fields are kept, as arrays (``read_for_plot``): a
 10-minute flight plots in a few hundred MB at most.
@@ -84,8 +84,9 @@ def read_for_plot(path: str | Path, drones: Sequence[str] | None = None) -> LogC
     A fleet log keeps every drone's channels (only ``drones``' when given).
     """
     log = read_columns(path, PLOT_FIELDS, PLOT_WHOLE, sink=FleetColumnSink(PLOT_FIELDS, PLOT_WHOLE, drones))
-    if not fleet_drones(log):
-        require_messages(log, ("/state", "/reference"))
+    names = fleet_drones(log)
+    for prefix in [f"/{n}" for n in names if drones is None or n in drones] if names else [""]:
+        require_messages(log, (f"{prefix}/state", f"{prefix}/reference"))
     return log
 
 
