@@ -259,9 +259,9 @@ class _Tap:
 
 
 def run_fleet(cfg: Config, name_hint: str = "fleet",
-              on_coordinator: Callable[[FleetCoordinator], None] | None = None) -> FleetResult:
+              on_coordinator: Callable[[FleetCoordinator], None] | None = None, dashboard: Any = None) -> FleetResult:
     """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary;
-    ``on_coordinator`` as for ``fly_drones``."""
+    ``on_coordinator`` and ``dashboard`` as for ``fly_drones``."""
     names, configs, refs = drone_configs(cfg)
     from cfknode.sim_backend.faults import check_faults
 
@@ -290,7 +290,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
                         for n, d in zip(names, backend.drones)]
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator, trainers)
+                              handback, on_coordinator, trainers, dashboard)
     finally:
         for box in boxes:
             box.close()
@@ -301,7 +301,7 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
                name_hint: str, forced: Sequence[dict[str, Any]],
                handback: Callable[[], Sequence[dict[str, Any]]],
                on_coordinator: Callable[[FleetCoordinator], None] | None = None,
-               trainers: Sequence[Any] | None = None) -> FleetResult:
+               trainers: Sequence[Any] | None = None, dashboard: Any = None) -> FleetResult:
     """Fly connected drones (simulated or real: each a ``Backend``) under one coordinator and one log.
 
     ``handback()`` hands every drone back once all flight loops ended and returns each one's
@@ -309,7 +309,9 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
     the supervisor's deadline watch apply, as for a single hardware flight.
     ``on_coordinator(coordinator)`` is called once before take-off, for the stop signals that
     arrive outside the flight loops (``ProcessSignals.route``). ``trainers``: each drone's port on
-    the shared trainer when it learns online (``fleet_learning.fleet_trainers``), else None."""
+    the shared trainer when it learns online (``fleet_learning.fleet_trainers``), else None.
+    ``dashboard``: a live view (cfknode/app/ui/fleet_dashboard.py ``FleetDashboard``) whose
+    ``observers(i, drone, reference, controller, supervisor, coordinator)`` watch drone i; None: none."""
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
         for event in forced:
@@ -329,7 +331,7 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
         sessions = fleet_sessions([d.config for d in drones], models, logs, [d.clock for d in drones], ports, ground)
         with sessions as learners:
             results = _fly_drones(cfg, drones, flog, names, refs, sups, logs, models, mpcs, boxes, learners, ground,
-                                  coordinator, handback)
+                                  coordinator, handback, dashboard)
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
         coordinator.log_signals(t_end)  # the ones no tick logged (during the hand-back)
@@ -344,7 +346,7 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
                 refs: Sequence[HoldableReference], sups: Sequence[Supervisor], logs: Sequence[Any],
                 models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], learners: Sequence[Any],
                 ground: Sequence[float], coordinator: FleetCoordinator,
-                handback: Callable[[], Sequence[dict[str, Any]]]) -> list[DroneResult]:
+                handback: Callable[[], Sequence[dict[str, Any]]], dashboard: Any = None) -> list[DroneResult]:
     """Fly every drone to its end and write its summary (with its learner's fields when it learned online)."""
     parts = []
     for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(drones, refs, sups, logs, models, mpcs, boxes)):
@@ -356,6 +358,8 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                  observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+    for i, (d, p) in enumerate(zip(drones, parts) if dashboard is not None else ()):
+        p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
     records = asyncio.run(_gather(drones, parts, coordinator))
     after = handback()
     results = []

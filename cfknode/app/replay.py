@@ -142,9 +142,13 @@ def load_residual_model(path: str | Path) -> tuple[ResidualModel, str]:
 
 
 def replay_log(
-    log: LogData, cfg: Config, model: ResidualModel | None = None, model_name: str | None = None
+    log: LogData, cfg: Config, model: ResidualModel | None = None, model_name: str | None = None,
+    trajectory: Any = None,
 ) -> ReplayResult:
-    """Run ``cfg``'s controller on every controller tick of ``log``; see the module docstring."""
+    """Run ``cfg``'s controller on every controller tick of ``log``; see the module docstring.
+
+    ``trajectory``: the reference flown (default: rebuilt from ``cfg``; a fleet drone's is its own).
+    """
     from cfknode.flight.controller import Controller
     from cfknode.flight.model_slot import ModelSlot
     from cfknode.flight.trajectory import make_trajectory
@@ -159,7 +163,8 @@ def replay_log(
         raise ReplayError("--model needs the MPC controller (controller.kind mpc), the log flew geometric")
     slot = ModelSlot(model, version=1) if model is not None else None
     controller = Controller(ctrl, cfg.vehicle, model=slot)
-    trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
+    if trajectory is None:
+        trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
 
     rows_t: list[float] = []
     logged: list[list[float]] = []

@@ -1,5 +1,5 @@
-"""``cfknode fly --fleet N`` (a simulated fleet) and ``cfknode fly --robots cf1,cf2`` (robots from the
-robots file): fly them and print one line per drone (docs/fleet.md)."""
+"""``cfknode fly --fleet N`` (a simulated fleet, with its live dashboard in a terminal) and ``cfknode fly
+--robots cf1,cf2`` (robots from the robots file): fly them and print one line per drone (docs/fleet.md)."""
 
 from __future__ import annotations
 
@@ -22,8 +22,12 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
           f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
           "lockstep simulation", file=out)
     # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
+    dashboard = fleet_dashboard(cfg, args)
     with ProcessSignals() as signals:
-        result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route)
+        result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route,
+                           dashboard=dashboard)
+    if dashboard is not None and dashboard.error is not None:
+        print(f"cfknode: the dashboard failed ({dashboard.error}); the flight went on without it", file=sys.stderr)
     return report(cfg, result, args)
 
 
@@ -41,10 +45,11 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
     print(f"cfknode fly: robots {', '.join(names)} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
           "real time", file=out)
+    dashboard = fleet_dashboard(cfg, args, len(names))
     try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet.py)
         with ProcessSignals() as signals:
             result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
-                                     on_coordinator=signals.route)
+                                     on_coordinator=signals.route, dashboard=dashboard)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1
@@ -77,3 +82,21 @@ def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
     if result.log_incomplete is not None:
         print(f"cfknode: the flight log is {result.log_incomplete}", file=sys.stderr)
     return 0 if result.complete and result.log_incomplete is None else 1
+
+
+def fleet_dashboard(cfg: Config, args: argparse.Namespace, size: int | None = None) -> Any:
+    """The fleet's live view when the single flight would show its dashboard (a terminal, not
+    ``--headless``, ``dashboard.enabled``), on the same stream (stderr with ``--json``); else None."""
+    from rich.console import Console
+
+    from cfknode.app.ui.dashboard import should_show_dashboard
+    from cfknode.app.ui.fleet_dashboard import FleetDashboard, FleetStatus
+
+    console = Console(stderr=args.json)
+    if not should_show_dashboard(args, console.file, cfg.dashboard.enabled):
+        return None
+    t, c = cfg.trajectory, cfg.controller
+    title = f"{size or cfg.fleet.size} x {t.kind} r={t.radius} m ({cfg.fleet.layout}) - {c.kind} ({c.solver})"
+    status = FleetStatus(title, cfg.fleet.min_separation, show_mass=c.adaptation != "none",
+                         show_models=cfg.online.enabled)
+    return FleetDashboard(console, status, cfg.dashboard.refresh_hz)

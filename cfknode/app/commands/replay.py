@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import sys
+from typing import Any
 
 from cfknode.app.cli import UsageError
 from cfknode.app.config import parse_override
@@ -23,12 +24,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--csv", help="write logged and replayed commands per tick to this CSV file")
     p.add_argument("--png", help="plot logged and replayed commands to this PNG file")
     p.add_argument("--json", action="store_true", help="print the comparison as one JSON object")
+    p.add_argument("--drone", metavar="NAME", help="fleet log: replay this drone (e.g. cf2)")
 
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from cfknode.app.logs.fleet_log import drone_log, fleet_drones
     from cfknode.app.logs.reader import LogError, read_log, require_messages
     from cfknode.app.replay import COMMAND_FIELDS, ReplayError, load_residual_model, logged_config, plot_replay, \
         replay_log, write_csv
@@ -40,10 +43,18 @@ def run(args: argparse.Namespace) -> int:
         overrides["controller.qp_solver"] = args.qp_solver
     try:
         log = read_log(args.log)
+        names = fleet_drones(log)
+        if names:
+            log = drone_log(log, _chosen_drone(args, names))
+        elif args.drone is not None:
+            raise UsageError(f"{args.log}: --drone: this log is a single drone's flight, not a fleet's")
         require_messages(log, ("/state", "/command"))
         cfg, dropped = logged_config(log, overrides)
+        trajectory = None
+        if names:
+            cfg, trajectory = _fleet_drone(cfg, names.index(args.drone))
         model, model_name = load_residual_model(args.model) if args.model else (None, None)
-        result = replay_log(log, cfg, model, model_name)
+        result = replay_log(log, cfg, model, model_name, trajectory)
     except (LogError, ReplayError) as exc:
         raise UsageError(str(exc)) from None
     if args.csv:
@@ -87,6 +98,27 @@ def run(args: argparse.Namespace) -> int:
         if path:
             console.print(f"wrote {what} {path}")
     return 0
+
+
+def _chosen_drone(args: argparse.Namespace, names: list[str]) -> str:
+    if args.drone is None:
+        raise UsageError(f"{args.log} is a fleet log: choose a drone with --drone ({', '.join(names)})")
+    if args.drone not in names:
+        raise UsageError(f"{args.log}: no drone {args.drone} in this fleet log; it has {', '.join(names)}")
+    return str(args.drone)
+
+
+def _fleet_drone(cfg: Any, index: int) -> tuple[Any, Any]:
+    """Drone ``index``'s own config (start, seed) and reference, rebuilt from the fleet's config as it flew."""
+    from cfknode.app.config import ConfigError
+    from cfknode.app.fleet import drone_configs
+    from cfknode.app.replay import ReplayError
+
+    try:
+        _, configs, refs = drone_configs(cfg)
+    except ConfigError as exc:
+        raise ReplayError(f"the fleet's drones cannot be rebuilt from the logged config: {exc}") from None
+    return configs[index], refs[index].inner
 
 
 def _finite(x: float) -> float | None:

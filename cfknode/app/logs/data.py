@@ -226,6 +226,15 @@ class ColumnSink:
         self.counts: dict[str, int] = {}
         self.last_t: dict[str, float] = {}
 
+    def add_alias(self, topic: str, like: str) -> None:
+        """Keep ``topic`` as ``like`` is kept (the same fields, or whole): a fleet drone's ``/cf1/state``
+        as ``/state``."""
+        if like in self.columns:
+            self.times[topic] = array("d")
+            self.columns[topic] = {name: _Column(col.kind, col.width) for name, col in self.columns[like].items()}
+        if like in self.whole:
+            self.whole[topic] = []
+
     def __call__(self, topic: str, msg: dict[str, Any]) -> None:
         t = msg["t"]
         self.counts[topic] = self.counts.get(topic, 0) + 1

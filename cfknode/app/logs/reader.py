@@ -70,13 +70,15 @@ def read_log(path: str | Path) -> LogData:
                    note=scan.damage.line(), damage=scan.damage)
 
 
-def read_columns(path: str | Path, fields: Mapping[str, Sequence[str]], whole: Sequence[str] = ()) -> LogColumns:
+def read_columns(path: str | Path, fields: Mapping[str, Sequence[str]], whole: Sequence[str] = (),
+                 sink: ColumnSink | None = None) -> LogColumns:
     """Read only ``fields`` (topic -> registry field names) as arrays, and the ``whole`` topics as dicts.
 
-    The memory kept is about 8 bytes per number asked for; see ``read_log`` for errors.
+    The memory kept is about 8 bytes per number asked for; see ``read_log`` for errors. ``sink``:
+    one made for these fields that keeps more (a fleet log's drones: logs/fleet_log.py).
     """
     path = Path(path)
-    sink = ColumnSink(fields, whole)
+    sink = sink if sink is not None else ColumnSink(fields, whole)
     scan = _Scan(path, sink)
     scan.run()
     return LogColumns(path=path, config=scan.config, software_version=scan.software_version,

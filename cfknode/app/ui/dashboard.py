@@ -51,6 +51,7 @@ __all__ = [
 
 T = TypeVar("T")
 KeyCallback = Callable[[str], None]
+Render = Callable[[Any, float, "str | None"], Any]  # (status, wall_now, key_error) -> a rich renderable
 Line = list[tuple[str, Style | None]]
 
 from cfknode.app.ui.frame import (  # noqa: F401 (re-exported)
@@ -201,7 +202,7 @@ def should_show_dashboard(args: argparse.Namespace, stream: IO[str], enabled: bo
 
 
 async def run_dashboard(
-    status: FlightStatus,
+    status: Any,
     stop_event: asyncio.Event,
     console: Console,
     on_key: KeyCallback | None = None,
@@ -209,12 +210,15 @@ async def run_dashboard(
     budget: float = 0.02,
     key_stream: IO[str] | None = None,
     meter: FrameMeter | None = None,
+    render: Render = render_frame,
 ) -> DashboardStats:
     """Draw ``status`` at ``refresh_hz`` until ``stop_event`` is set, then draw a last frame and return.
 
     ``on_key`` receives key names from ``key_stream`` (default stdin) while the dashboard runs.
     ``budget`` is the largest share of wall time frames may take; costlier frames are spaced out.
-    ``meter`` collects the frame costs (one is made if not given).
+    ``meter`` collects the frame costs (one is made if not given). ``render(status, wall_now,
+    key_error)`` lays out a frame: any status with a ``poll()`` works with its own renderer
+    (the fleet's view, cfknode/app/ui/fleet_dashboard.py).
     """
     if refresh_hz <= 0:
         raise ValueError(f"refresh_hz must be > 0, got {refresh_hz}")
@@ -230,7 +234,7 @@ async def run_dashboard(
             while True:
                 start = time.perf_counter()
                 status.poll()
-                live.update(render_frame(status, start, keys.error if keys else None), refresh=True)
+                live.update(render(status, start, keys.error if keys else None), refresh=True)
                 cost = time.perf_counter() - start
                 meter.costs.append(cost)
                 if len(meter.costs) > 1:  # the first frame pays one-off costs (rich's caches), not a rate
@@ -248,7 +252,7 @@ async def run_dashboard(
                 except asyncio.CancelledError:
                     # Cancelled with its event loop (asyncio.run ending): leave the last state on screen.
                     start = time.perf_counter()
-                    live.update(render_frame(status, start, keys.error if keys else None), refresh=True)
+                    live.update(render(status, start, keys.error if keys else None), refresh=True)
                     meter.costs.append(time.perf_counter() - start)
                     raise
         finally:

@@ -7,8 +7,9 @@
 - ``model_versions.png``: which model version flew when, with swaps, rejections and rollbacks.
 
 Several logs overlay on the same axes to compare controllers; each legend entry names the
-log and its controller. A truncated log (the process killed mid-flight) plots up to its last
-complete record. Positions are the simulator's true ones when logged, else the estimate.
+log and its controller. A fleet log (docs/fleet.md) overlays its drones, one line each named
+after the drone (``drones`` chooses some). A truncated log (the process killed mid-flight)
+plots up to its last complete record. Positions are the simulator's true ones when logged, else the estimate.
 
 Logs are streamed and only the plotted fields are kept, as arrays (``read_for_plot``): a
 10-minute flight plots in a few hundred MB at most.
@@ -16,6 +17,7 @@ Logs are streamed and only the plotted fields are kept, as arrays (``read_for_pl
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Sequence
@@ -29,10 +31,12 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, NullFormatter
 
+from cfknode.app.logs.fleet_log import DroneColumns, FleetColumnSink, choose_drones, fleet_drones
+from cfknode.app.logs.format import LogError
 from cfknode.app.logs.reader import LogColumns, LogData, read_columns, require_messages
 
 __all__ = ["DPI", "FlightTrace", "PLOTS", "PlotReport", "plot_logs", "plot_traces", "read_for_plot",
-           "trace_from_log"]
+           "trace_from_log", "traces_from_log"]
 
 PLOTS: tuple[str, ...] = ("top_view", "altitude", "error_xyz", "timing", "model_versions")
 DPI = 100  # a 9 x 4.6 inch figure is 900 x 460 pixels
@@ -65,6 +69,7 @@ class FlightTrace:
     t_end: float  # last flight time in the log
     truncated: bool
     damage: str = ""  # what the reader skipped or found missing (LogDamage.line()), "" for a clean log
+    drone: str = ""  # the drone's name in a fleet log ("" for a single flight's log)
 
 
 @dataclass(frozen=True)
@@ -73,11 +78,34 @@ class PlotReport:
     traces: tuple[FlightTrace, ...]
 
 
-def read_for_plot(path: str | Path) -> LogColumns:
-    """Stream a log, keeping what the plots need; ``LogError`` (one line) for a file that cannot plot."""
-    log = read_columns(path, PLOT_FIELDS, PLOT_WHOLE)
-    require_messages(log, ("/state", "/reference"))
+def read_for_plot(path: str | Path, drones: Sequence[str] | None = None) -> LogColumns:
+    """Stream a log, keeping what the plots need; ``LogError`` (one line) for a file that cannot plot.
+
+    A fleet log keeps every drone's channels (only ``drones``' when given).
+    """
+    log = read_columns(path, PLOT_FIELDS, PLOT_WHOLE, sink=FleetColumnSink(PLOT_FIELDS, PLOT_WHOLE, drones))
+    names = fleet_drones(log)
+    for prefix in [f"/{n}" for n in names if drones is None or n in drones] if names else [""]:
+        require_messages(log, (f"{prefix}/state", f"{prefix}/reference"))
     return log
+
+
+def traces_from_log(log: LogColumns, drones: Sequence[str] | None = None) -> tuple[FlightTrace, ...]:
+    """One trace per drone of a fleet log (``drones`` only, in that order, when given), named after it;
+    a single flight's log gives its one trace. ``LogError`` (one line) for a drone the log lacks."""
+    names = fleet_drones(log)
+    if not names:
+        return (trace_from_log(log),)
+    try:
+        chosen = choose_drones(log.path, names, drones)
+    except ValueError as exc:
+        raise LogError(str(exc)) from None
+    traces = []
+    for name in chosen:
+        tr = trace_from_log(DroneColumns(log, name))  # type: ignore[arg-type]
+        # Each drone flew its own reference under the fleet's one trajectory config.
+        traces.append(dataclasses.replace(tr, name=name, drone=name, reference_key=f"{tr.reference_key}/{name}"))
+    return tuple(traces)
 
 
 def trace_from_log(log: LogData | LogColumns) -> FlightTrace:
@@ -115,9 +143,20 @@ def trace_from_log(log: LogData | LogColumns) -> FlightTrace:
     )
 
 
-def plot_logs(paths: Sequence[str | Path], out_dir: str | Path, dpi: int = DPI) -> PlotReport:
-    """Read the logs and write every plot of ``PLOTS`` into ``out_dir``; raises ``LogError`` for a bad file."""
-    traces = tuple(trace_from_log(read_for_plot(p)) for p in paths)
+def plot_logs(paths: Sequence[str | Path], out_dir: str | Path, dpi: int = DPI,
+              drones: Sequence[str] | None = None) -> PlotReport:
+    """Read the logs and write every plot of ``PLOTS`` into ``out_dir``; raises ``LogError`` for a bad file.
+
+    A fleet log gives one trace per drone (``drones`` only, when given: every fleet log must have
+    them; single flights' logs plot whole). With several logs a drone's legend names its log too.
+    """
+    logs = [read_for_plot(p, drones) for p in paths]
+    if drones is not None and not any(fleet_drones(log) for log in logs):
+        raise LogError(f"--drones: {'this log is' if len(logs) == 1 else 'none of the logs is'} a fleet's flight")
+    traces = tuple(tr for log in logs for tr in traces_from_log(log, drones))
+    if len(logs) > 1:
+        traces = tuple(dataclasses.replace(tr, name=f"{tr.path.stem} · {tr.drone}") if tr.drone else tr
+                       for tr in traces)
     return PlotReport(plot_traces(traces, out_dir, dpi), traces)
 
 
@@ -294,11 +333,14 @@ def _references(ax: Axes, traces: Sequence[FlightTrace], xy: Any) -> None:
     for tr in traces:
         distinct.setdefault(tr.reference_key, tr)
     styles = ("--", ":", "-.")
+    colors = {id(o): c for o, c in _colored(traces)}
     for k, tr in enumerate(distinct.values()):
         label = "reference" if len(distinct) == 1 else f"reference of {tr.name}"
         # The longest flight of a mission carries its whole reference (others may be truncated).
         same = [o for o in traces if o.reference_key == tr.reference_key]
-        ax.plot(*xy(max(same, key=lambda o: len(o.t))), color="black", ls=styles[k % 3], lw=1.0, label=label)
+        # A fleet drone's own reference is dashed in its colour: the drones fly different ones.
+        color, ls = (colors[id(tr)], "--") if tr.drone else ("black", styles[k % 3])
+        ax.plot(*xy(max(same, key=lambda o: len(o.t))), color=color, ls=ls, lw=1.0, label=label)
 
 
 def _window(ax: Axes, traces: Sequence[FlightTrace]) -> None:
@@ -360,14 +402,19 @@ def _rms(err: np.ndarray, tr: FlightTrace) -> float:
 
 
 def _title(fig: Figure, traces: Sequence[FlightTrace], what: str) -> None:
-    if len(traces) == 1:
+    if len({tr.path for tr in traces}) == 1 and traces[0].drone:
+        tr = traces[0]
+        sub = f"{tr.path.stem} · fleet: {', '.join(t.drone for t in traces)}" + (
+            "" if tr.true_positions else " (estimated positions)")
+    elif len(traces) == 1:
         tr = traces[0]
         sub = tr.name + ("" if tr.true_positions else " (estimated positions)")
     else:
         sub = f"{len(traces)} flights"
     cut = [tr for tr in traces if tr.truncated]
     if cut:
-        sub += "; truncated: " + ", ".join(f"{tr.path.stem} at {tr.t_end:.2f} s" for tr in cut)
+        ends = {tr.path.stem: tr.t_end for tr in cut}  # a fleet log's drones: once
+        sub += "; truncated: " + ", ".join(f"{stem} at {t_end:.2f} s" for stem, t_end in ends.items())
     fig.suptitle(f"{what}\n{sub}", fontsize=10)
 
 
