@@ -15,9 +15,18 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
 
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
+    ray = getattr(args, "executor", "local") == "ray"
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
-          f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation", file=out)
-    result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
+          f"for {t.duration} s, controller {cfg.controller.kind}, lockstep simulation"
+          + (" (a Ray actor per drone)" if ray else ""), file=out)
+    if ray:
+        from cfknode.app.bench.executor import ExecutorSettings
+        from cfknode.app.fleet_ray import run_fleet_ray
+
+        settings = ExecutorSettings.from_args(args, default_jobs=cfg.fleet.size)
+        result = run_fleet_ray(cfg, settings, name_hint=args.name or f"fleet{cfg.fleet.size}")
+    else:
+        result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
     if args.json:
         print(json.dumps({
             "log": result.log_path,
@@ -31,6 +40,8 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
         s = d.summary
         print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
               f"p99 {s.compute_p99_ms:.2f} ms: {d.outcome.message}", file=out)
+        for path in s.extra.get("logs", ()):  # --executor ray: each drone's own logs, on its node
+            print(f"{d.name} log {path} (node {str(s.extra.get('ray_node', ''))[:12]})", file=out)
     for event in result.events:
         print(f"fleet: {event}", file=out)
     radios = ", ".join(f"{r} {pps:g}/s" for r, pps in result.radio_pps.items())
