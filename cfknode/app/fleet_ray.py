@@ -27,6 +27,7 @@ import asyncio
 import contextlib
 import dataclasses
 import secrets
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -54,6 +55,8 @@ PLACEMENT_TIMEOUT_S = 120.0  # actors that cannot start (no free CPU on their ra
 # budget (radio_budget.py) decides how many drones a radio carries.
 RESOURCE_SHARE = 0.001
 MAX_RESTARTS = 1
+LOST_CAUSE = "actor_lost"  # a drone whose actor's worker died (its link is gone)
+RESTART_WAIT_S = 60.0  # how long a drone's restarting actor may take to answer again
 ACTOR_THREADS = 4  # fly() on one thread; status and the driver's requests on the others
 
 
@@ -240,7 +243,8 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
     """Poll the actors until every flight has ended; the fleet policy and the e-stops act meanwhile."""
     lost = (ray.exceptions.RayActorError, ray.exceptions.ActorUnavailableError)
     flights = {a.fly.remote(): i for i, a in enumerate(actors)}
-    tries = [0] * len(actors)
+    restart_deadline: dict[int, float] = {}
+    retry: list[int] = []  # drones whose flight call is asked again (of a restarting actor) next round
     results: list[FlightResult | None] = [None] * len(actors)
     polls: dict[Any, int] = {}
     last_t = [0.0] * len(actors)
@@ -248,18 +252,27 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
         stack.enter_context(stop_signal_handler(_AllDrones(links)))
         for link, box in zip(links, boxes):
             stack.enter_context(estop_watch(link, box))
-        while flights:
+        while flights or retry:
+            for i in retry:
+                flights[actors[i].fly.remote()] = i
+            retry.clear()
             done, _ = ray.wait(list(flights), num_returns=len(flights), timeout=0)
             for ref in done:
                 i = flights.pop(ref)
                 try:
                     results[i] = ray.get(ref)
-                except lost:
-                    tries[i] += 1
-                    if tries[i] <= MAX_RESTARTS:  # the restarted actor reports the lost flight
-                        flights[actors[i].fly.remote()] = i
+                except lost as exc:
+                    # Unavailable: the worker died and Ray restarts the actor; asked again, the restarted
+                    # actor reports the lost flight. Died: no restart is left.
+                    if i not in restart_deadline:  # the drone is lost now: the fleet policy acts at once
+                        links[i].cause = LOST_CAUSE
+                        coordinator.on_tick(i, _Polled(last_t[i], "EMERGENCY", None))
+                    waiting = restart_deadline.setdefault(i, time.monotonic() + RESTART_WAIT_S)
+                    if isinstance(exc, ray.exceptions.ActorUnavailableError) and time.monotonic() < waiting:
+                        retry.append(i)
                         continue
-                    results[i] = _lost(coordinator.names[i], last_t[i])
+                    results[i] = _lost(coordinator.names[i], last_t[i], str(exc).splitlines()[0][:200])
+                    continue  # already reported to the coordinator
                 out = results[i].outcome
                 links[i].cause = out.cause if out.cause != "complete" else ""
                 coordinator.on_tick(i, _Polled(last_t[i], out.state.value, None))
@@ -267,14 +280,14 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
             for i, a in enumerate(actors):
                 if results[i] is None and i not in asked:
                     polls[a.status.remote()] = i
-            ready, _ = ray.wait(list(polls), num_returns=len(polls), timeout=0)
+            ready, _ = ray.wait(list(polls), num_returns=len(polls), timeout=0) if polls else ([], [])
             for ref in ready:
                 i = polls.pop(ref)
                 try:
                     status: DroneStatus = ray.get(ref)
                 except lost:
                     continue  # restarting: its flight call says what happened
-                if results[i] is not None or status.restarted or not status.state:
+                if results[i] is not None or i in restart_deadline or status.restarted or not status.state:
                     continue
                 last_t[i] = status.t
                 links[i].cause = status.cause
@@ -284,16 +297,16 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
     return [r for r in results if r is not None]
 
 
-def _lost(name: str, t: float) -> FlightResult:
+def _lost(name: str, t: float, why: str) -> FlightResult:
     """A drone whose actor died for good (restarts used up): no record, a fault ending."""
     from cfknode.app.ui.summary import compute_summary
 
     empty = FlightRecord.empty(0)
-    text = f"{name}: its Ray actor died and could not be restarted; the flight is lost"
+    text = f"{name}: its Ray actor died and could not be restarted ({why}); the flight is lost"
     summary = compute_summary(t=empty.t, p=empty.p, p_ref=empty.p_ref, compute_s=empty.compute_s,
                               solve_s=empty.solve_s, missed=empty.missed, window=(0.0, 0.0), wall_time=0.0,
-                              extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": "actor_lost"})
-    return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, "actor_lost", t))
+                              extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": LOST_CAUSE})
+    return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, LOST_CAUSE, t))
 
 
 __all__ = ["RemoteCoordinator", "check_resources", "radio_resource", "run_fleet_ray"]

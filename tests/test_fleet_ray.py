@@ -1,0 +1,159 @@
+"""A fleet on Ray (``cfknode fly --fleet N --executor ray``): each drone an actor on the node with its radio.
+
+The cluster is ``ray.cluster_utils.Cluster`` on this machine: two nodes of one CPU, one simulated
+radio each (``crazyradio_0``, ``crazyradio_1``), shared by the tests of this module.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.fleet_ray import check_resources, radio_resource
+
+SHORT = {"trajectory.duration": 1.0, "trajectory.takeoff_duration": 1.5, "trajectory.settle_duration": 0.5,
+         "trajectory.land_duration": 1.5, "trajectory.ramp_duration": 0.5, "dashboard.enabled": False,
+         "fleet.drones_per_sim_radio": 1}
+
+
+def fleet_cfg(tmp_path, **over):
+    return load_config(None, {**SHORT, "fleet.size": 2, "log.dir": str(tmp_path / "logs"),
+                              "safety.estop_dir": str(tmp_path / "estop"), **over})
+
+
+def test_each_drone_needs_the_resource_named_for_its_radio(tmp_path):
+    cfg = fleet_cfg(tmp_path, **{"fleet.drones_per_sim_radio": 2})
+    assert [radio_resource(cfg, f"sim://{n}") for n in range(4)] == ["crazyradio_0", "crazyradio_0",
+                                                                     "crazyradio_1", "crazyradio_1"]
+    lab = load_config(None, {"fleet.ray_radio_resource": "lab-a_radio{radio}"})
+    assert radio_resource(lab, "radio://3/80/2M/E7E7E7E701") == "lab-a_radio3"
+
+
+def test_a_bad_resource_name_scheme_is_refused_in_one_line():
+    with pytest.raises(ConfigError, match="fleet.ray_radio_resource"):
+        load_config(None, {"fleet.ray_radio_resource": "radio_{index}"})
+
+
+def test_a_drone_whose_radio_no_node_offers_is_refused_naming_it():
+    available = {"CPU": 2.0, "crazyradio_0": 1.0, "node:10.0.0.1": 1.0}
+    check_resources(["cf1", "cf2"], ["crazyradio_0", "crazyradio_0"], available)  # both on radio 0: fine
+    with pytest.raises(ConfigError) as err:
+        check_resources(["cf1", "cf2", "cf3"], ["crazyradio_0", "crazyradio_1", "crazyradio_1"], available)
+    line = str(err.value)
+    assert "\n" not in line and "take-off refused" in line
+    assert "cf2 and cf3 need the Ray resource 'crazyradio_1'" in line and "custom resources: crazyradio_0" in line
+
+
+ray = pytest.importorskip("ray")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "resources": {"crazyradio_0": 1}})
+    c.add_node(num_cpus=1, resources={"crazyradio_1": 1})
+    c.wait_for_nodes()
+    ray.init(address=c.address, logging_level="warning", log_to_driver=False)
+    try:
+        yield c
+    finally:
+        ray.shutdown()
+        c.shutdown()
+
+
+def _settings(cluster):
+    from cfknode.app.bench.executor import ExecutorSettings
+
+    return ExecutorSettings(kind="ray", address=cluster.address)
+
+
+def _node_with(resource: str) -> str:
+    return next(n["NodeID"] for n in ray.nodes() if n["Alive"] and n["Resources"].get(resource))
+
+
+def _tracking_actor(drone: str):
+    """The drone's actor (found by its name) once its drone flies the pattern."""
+    deadline = time.monotonic() + 60.0
+    actor = None
+    while time.monotonic() < deadline and actor is None:
+        names = [n for n in ray.util.list_named_actors() if f"-{drone}-" in n]
+        actor = ray.get_actor(names[0]) if names else None
+        time.sleep(0.1)
+    assert actor is not None
+    while time.monotonic() < deadline and ray.get(actor.status.remote()).state != "TRACK":
+        time.sleep(0.05)
+    return actor
+
+
+def test_two_drones_fly_one_per_radio_node_land_and_log_on_their_node(cluster, tmp_path):
+    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.logs.reader import read_log
+
+    result = run_fleet_ray(fleet_cfg(tmp_path), _settings(cluster))
+    assert result.complete, [d.outcome.message for d in result.drones]
+    nodes = [d.summary.extra["ray_node"] for d in result.drones]
+    assert nodes == [_node_with("crazyradio_0"), _node_with("crazyradio_1")] and nodes[0] != nodes[1]
+    for d in result.drones:
+        (path,) = d.summary.extra["logs"]
+        log = read_log(path)
+        assert not log.truncated and 0.9 * d.record.ticks < len(log.topic("/state")) <= d.record.ticks
+        assert log.topic("/summary")[-1]["mse"] == pytest.approx(d.summary.mse) and d.summary.mse < 1e-3
+    assert 0.3 < result.min_separation_m < 1.1  # opposite on the 0.5 m circle, tick by tick
+    fleet_log = read_log(result.log_path)
+    assert set(fleet_log.topic("/summary")[-1]["logs"]) == {"cf1", "cf2"}
+
+
+def test_a_drone_whose_radio_no_node_has_is_refused_before_any_actor_starts(cluster, tmp_path):
+    from cfknode.app.fleet_ray import run_fleet_ray
+
+    with pytest.raises(ConfigError, match=r"take-off refused: cf3 needs the Ray resource 'crazyradio_2'"):
+        run_fleet_ray(fleet_cfg(tmp_path, **{"fleet.size": 3}), _settings(cluster))
+    assert not (tmp_path / "logs").exists() or not list((tmp_path / "logs").glob("*.mcap"))
+
+
+def test_a_restarted_actor_keeps_the_old_log_and_ends_its_drone_as_a_fault(cluster, tmp_path):
+    from cfknode.app.drone_actor import RESTART_CAUSE
+    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.logs.reader import read_log
+
+    cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 8.0})
+    out: dict = {}
+    driver = threading.Thread(target=lambda: out.update(result=run_fleet_ray(cfg, _settings(cluster))), daemon=True)
+    driver.start()
+    cf1 = _tracking_actor("cf1")
+    ray.kill(cf1, no_restart=False)  # the worker dies mid-air; Ray restarts the actor
+    driver.join(60.0)
+    result = out["result"]
+    one, two = result.drones
+    assert any("cf1 ended its flight (actor_lost); fleet.on_fault land_all" in e for e in result.events)
+    assert one.outcome.cause == RESTART_CAUSE, one.outcome.message
+    assert two.outcome.cause == "fleet_fault"  # fleet.on_fault land_all
+    assert two.outcome.state.value == "LANDED"
+    old, new = one.summary.extra["logs"]
+    assert new.endswith("-restart.mcap") and old != new
+    before = read_log(old)  # the crash left it without its footer: read around the damage, never overwritten
+    assert before.truncated and len(before.topic("/state")) > 0
+    after = read_log(new)
+    assert after.topic("/events")[0]["kept_logs"] == [old]
+
+
+def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
+    from cfknode.app.commands.estop_all import estop_all
+    from cfknode.app.fleet_ray import run_fleet_ray
+
+    cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 8.0})
+    out: dict = {}
+    driver = threading.Thread(target=lambda: out.update(result=run_fleet_ray(cfg, _settings(cluster))), daemon=True)
+    driver.start()
+    _tracking_actor("cf1")
+    _tracking_actor("cf2")
+    assert estop_all(tmp_path / "estop", "land", timeout=10.0) == 0  # the driver's entries sim-cf1, sim-cf2
+    driver.join(60.0)
+    result = out["result"]
+    assert [d.outcome.cause for d in result.drones] == ["estop_land", "estop_land"]
+    assert all(d.outcome.state.value == "LANDED" for d in result.drones)
+    assert all(d.record.t[-1] < 8.0 for d in result.drones)  # landed well before the mission's end
