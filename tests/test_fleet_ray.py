@@ -47,6 +47,18 @@ def test_a_drone_whose_radio_no_node_offers_is_refused_naming_it():
     assert "cf2 and cf3 need the Ray resource 'crazyradio_1'" in line and "custom resources: crazyradio_0" in line
 
 
+@pytest.mark.parametrize("argv, expect", [
+    (["--executor", "ray"], "--executor ray flies a fleet (--fleet N, N >= 2); a single flight runs here"),
+    (["--fleet", "2", "--address", "127.0.0.1:6379"], "--address needs --executor ray"),
+])
+def test_cli_refuses_executor_options_that_do_not_fit_in_one_line(tmp_path, capsys, argv, expect):
+    from cfknode.app.cli import main
+
+    code = main(["fly", "--headless", "--log-dir", str(tmp_path), *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1] == f"cfknode: error: {expect}"
+
+
 ray = pytest.importorskip("ray")
 
 
