@@ -9,6 +9,9 @@ from __future__ import annotations
 import threading
 import time
 
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
 
 from cfknode.app.config import ConfigError, load_config
@@ -45,6 +48,55 @@ def test_a_drone_whose_radio_no_node_offers_is_refused_naming_it():
     line = str(err.value)
     assert "\n" not in line and "take-off refused" in line
     assert "cf2 and cf3 need the Ray resource 'crazyradio_1'" in line and "custom resources: crazyradio_0" in line
+
+
+class _FakeLink:
+    """What the driver's coordinator calls on a drone's actor, recorded."""
+
+    def __init__(self):
+        self.calls, self.cause = [], ""
+
+    def snapshot(self):
+        return self
+
+    def request_land(self, reason, cause):
+        self.calls.append(("land", cause))
+
+    def land_at(self, t, reason, cause):
+        self.calls.append(("land_at", round(t, 3), cause))
+
+
+class _FakeRef:
+    def __init__(self, ref):
+        self.segments, self.held = ref.segments, []
+
+    def hold(self, t, p):
+        self.held.append(t)
+
+
+def _tick(t, state, p=None):
+    return SimpleNamespace(t=t, supervisor_state=state, est=None if p is None else SimpleNamespace(p=np.array(p)))
+
+
+def test_the_driver_coordinator_sends_holds_and_timed_landings_to_the_actors(tmp_path):
+    from cfknode.app.fleet import drone_configs
+    from cfknode.app.fleet_ray import RemoteCoordinator
+
+    cfg = fleet_cfg(tmp_path, **{"fleet.on_fault": "land_all", "fleet.hold_s": 0.5, "trajectory.duration": 10.0})
+    names, _, refs = drone_configs(cfg)
+    links, held = [_FakeLink(), _FakeLink()], [_FakeRef(r) for r in refs]
+    log = SimpleNamespace(write=lambda *a: None)
+    co = RemoteCoordinator(cfg, names, links, held, log)
+    co.on_tick(0, _tick(3.0, "TRACK", [0.0, 0.0, 1.0]))
+    co.on_tick(1, _tick(3.1, "TRACK", [0.1, 0.0, 1.0]))  # 0.1 m apart: both hold, then land 0.5 s later
+    assert [h.held for h in held] == [[3.1], [3.1]]
+    assert [k.calls for k in links] == [[("land_at", 3.6, "separation")]] * 2
+    co.on_tick(0, _tick(3.7, "TRACK", [0.0, 0.0, 1.0]))  # the actor keeps the time: nothing more from here
+    assert links[0].calls == [("land_at", 3.6, "separation")]
+    links[1].cause = "mocap_lost"
+    co.on_tick(1, _tick(4.0, "LAND"))  # a fault of its own: the others land (fleet.on_fault land_all)
+    assert links[0].calls[-1] == ("land", "fleet_fault") and any("cf2 ended its flight (mocap_lost)" in e
+                                                                  for e in co.events)
 
 
 @pytest.mark.parametrize("argv, expect", [

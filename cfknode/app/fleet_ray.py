@@ -56,6 +56,7 @@ PLACEMENT_TIMEOUT_S = 120.0  # actors that cannot start (no free CPU on their ra
 RESOURCE_SHARE = 0.001
 MAX_RESTARTS = 1
 LOST_CAUSE = "actor_lost"  # a drone whose actor's worker died (its link is gone)
+ERROR_CAUSE = "actor_error"  # a drone whose flight raised inside its actor
 RESTART_WAIT_S = 60.0  # how long a drone's restarting actor may take to answer again
 ACTOR_THREADS = 4  # fly() on one thread; status and the driver's requests on the others
 
@@ -215,10 +216,14 @@ def _fly(ray: Any, cfg: Config, names: Sequence[str], uris: Sequence[str], refs:
             flog.write("/events", 0.0, {"level": "info", "text": f"{n} flies on node {node} ({res})", "source": "fleet"})
         links = [_DroneLink(a, flog) for a in actors]
         coordinator = RemoteCoordinator(cfg, names, links, [_RemoteReference(k, r) for k, r in zip(links, refs)], flog)
-        flights = asyncio.run(_supervise(ray, actors, links, boxes, coordinator))
+        try:
+            flights = asyncio.run(_supervise(ray, actors, links, boxes, coordinator))
+            logs_of = [_log_paths(ray, a, f) for a, f in zip(actors, flights)]
+        finally:
+            for a in actors:  # done (or the driver failed): free their CPUs now
+                ray.kill(a, no_restart=True)
         results = []
-        for name, uri, actor, flight, node in zip(names, uris, actors, flights, nodes):
-            logs = _log_paths(ray, actor, flight)
+        for name, uri, flight, node, logs in zip(names, uris, flights, nodes, logs_of):
             summary = dataclasses.replace(flight.summary, extra={**flight.summary.extra, "drone": name, "uri": uri,
                                                                  "ray_node": node, "logs": logs})
             results.append(DroneResult(name, uri, summary, flight.record, flight.outcome))
@@ -271,8 +276,14 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
                     if isinstance(exc, ray.exceptions.ActorUnavailableError) and time.monotonic() < waiting:
                         retry.append(i)
                         continue
-                    results[i] = _lost(coordinator.names[i], last_t[i], str(exc).splitlines()[0][:200])
+                    why = str(exc).splitlines()[0][:200]
+                    results[i] = _ended(f"{coordinator.names[i]}: its Ray actor died and could not be restarted "
+                                        f"({why}); the flight is lost", LOST_CAUSE, last_t[i])
                     continue  # already reported to the coordinator
+                except ray.exceptions.RayTaskError as exc:  # the flight raised in the actor: that drone's fault
+                    why = str(getattr(exc, "cause", None) or exc).splitlines()[0][:200]
+                    results[i] = _ended(f"{coordinator.names[i]}: its flight failed in the actor: {why}",
+                                        ERROR_CAUSE, last_t[i])
                 out = results[i].outcome
                 links[i].cause = out.cause if out.cause != "complete" else ""
                 coordinator.on_tick(i, _Polled(last_t[i], out.state.value, None))
@@ -297,16 +308,15 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
     return [r for r in results if r is not None]
 
 
-def _lost(name: str, t: float, why: str) -> FlightResult:
-    """A drone whose actor died for good (restarts used up): no record, a fault ending."""
+def _ended(text: str, cause: str, t: float) -> FlightResult:
+    """A drone whose flight result never came (its actor died for good, or its flight raised): a fault ending."""
     from cfknode.app.ui.summary import compute_summary
 
     empty = FlightRecord.empty(0)
-    text = f"{name}: its Ray actor died and could not be restarted ({why}); the flight is lost"
     summary = compute_summary(t=empty.t, p=empty.p, p_ref=empty.p_ref, compute_s=empty.compute_s,
                               solve_s=empty.solve_s, missed=empty.missed, window=(0.0, 0.0), wall_time=0.0,
-                              extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": LOST_CAUSE})
-    return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, LOST_CAUSE, t))
+                              extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": cause})
+    return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, cause, t))
 
 
 __all__ = ["RemoteCoordinator", "check_resources", "radio_resource", "run_fleet_ray"]
