@@ -163,7 +163,11 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
     import ray
 
     # A Ray started here is this machine alone: it has every simulated radio.
-    owned = connect_ray(settings.address, len(names), {r: 1.0 for r in resources})
+    try:
+        owned = connect_ray(settings.address, len(names), {r: 1.0 for r in resources})
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        where = f"the Ray cluster at {settings.address}" if settings.address else "a local Ray"
+        raise MissionError(f"take-off refused: cannot join {where}: {str(exc).splitlines()[0][:200]}") from None
     try:
         check_resources(names, resources, ray.cluster_resources())
         boxes = [EstopMailbox(mailbox_dir(cfg.safety.estop_dir), f"sim-{n}") for n in names]

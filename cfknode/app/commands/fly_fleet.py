@@ -22,9 +22,14 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     if ray:
         from cfknode.app.bench.executor import ExecutorSettings
         from cfknode.app.fleet_ray import run_fleet_ray
+        from cfknode.app.mission import MissionError
 
         settings = ExecutorSettings.from_args(args, default_jobs=cfg.fleet.size)
-        result = run_fleet_ray(cfg, settings, name_hint=args.name or f"fleet{cfg.fleet.size}")
+        try:
+            result = run_fleet_ray(cfg, settings, name_hint=args.name or f"fleet{cfg.fleet.size}")
+        except MissionError as exc:  # the cluster could not be joined or could not place the drones
+            print(f"cfknode: error: {exc}", file=sys.stderr)
+            return 1
     else:
         result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}")
     if args.json:
