@@ -99,6 +99,30 @@ def test_the_driver_coordinator_sends_holds_and_timed_landings_to_the_actors(tmp
                                                                   for e in co.events)
 
 
+def test_the_timeline_compares_drones_at_the_same_flight_time_however_far_apart_their_actors_run(tmp_path):
+    from cfknode.app.fleet import drone_configs
+    from cfknode.app.fleet_ray import RemoteCoordinator, Timeline
+
+    cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 10.0})
+    names, _, refs = drone_configs(cfg)
+    links = [_FakeLink(), _FakeLink()]
+    co = RemoteCoordinator(cfg, names, links, [_FakeRef(r) for r in refs], SimpleNamespace(write=lambda *a: None))
+    line = Timeline(co, links)
+    # cf1 runs ahead: at 3 s it is where cf2 is at 1 s. Compared as the replies arrive they would
+    # be 0 m apart; at the same flight time they are 2 m apart (1 m with the one-tick lag of the
+    # one-process fleet, at these 1 s ticks).
+    line.add(0, [(t, "TRACK", "", (t, 0.0, 1.0)) for t in (1.0, 2.0, 3.0)])
+    line.add(1, [(1.0, "TRACK", "", (3.0, 0.0, 1.0))])
+    line.feed()
+    assert co.events == [] and co.watch.closest == pytest.approx(2.0)  # t = 1 s only: cf2 holds the rest back
+    line.add(1, [(t, "TRACK", "", (t + 2.0, 0.0, 1.0)) for t in (2.0, 3.0)])
+    line.close(0, "LANDED", "")
+    line.close(1, "LANDED", "")
+    line.feed()
+    assert co.events == [] and co.watch.closest >= 1.0
+    assert [k.calls for k in links] == [[], []]
+
+
 @pytest.mark.parametrize("argv, expect", [
     (["--executor", "ray"], "--executor ray flies a fleet (--fleet N, N >= 2); a single flight runs here"),
     (["--fleet", "2", "--address", "127.0.0.1:6379"], "--address needs --executor ray"),

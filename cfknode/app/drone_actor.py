@@ -40,6 +40,7 @@ from cfknode.safety.supervisor import Outcome
 from cfknode.safety.supervisor_types import State
 
 RESTART_CAUSE = "actor_restart"
+TRAIL_MAX = 400 * 600  # ticks kept for a driver that stopped asking (ten minutes at 400 Hz)
 _HOLDABLE = ("TAKEOFF", "TRACK")
 
 
@@ -65,6 +66,9 @@ class DroneStatus:
     done: bool  # the flight has ended (fly() returned or will at once)
     restarted: bool  # this actor is a restart after its worker died
     node_id: str
+    # Every tick since the previous status() as (t, state, cause, position or None): the driver
+    # compares the drones at the same flight time, whatever their actors' pace.
+    trail: tuple[tuple[float, str, str, tuple[float, float, float] | None], ...] = ()
 
 
 class DroneActor:
@@ -90,6 +94,7 @@ class DroneActor:
         self._land_at: tuple[float, str, str] | None = None
         self._sup: Any = None
         self._lock = threading.Lock()
+        self._trail: deque[tuple[float, str, str, tuple[float, float, float] | None]] = deque(maxlen=TRAIL_MAX)
         self._status = DroneStatus(self.name, 0.0, None, "", "", 0, False, self._restarted, self._node_id)
         self._restart_result: FlightResult | None = None
         if self._restarted:
@@ -101,8 +106,10 @@ class DroneActor:
         return self._node_id
 
     def status(self) -> DroneStatus:
+        """The latest tick, and every tick since the previous call (taken: each tick is reported once)."""
         with self._lock:
-            return self._status
+            trail, self._trail = tuple(self._trail), deque(maxlen=TRAIL_MAX)
+            return dataclasses.replace(self._status, trail=trail)
 
     def request_land(self, reason: str, cause: str) -> None:
         self._inbox.append(("land", (reason, cause)))
@@ -166,9 +173,11 @@ class DroneActor:
             sup.request_land(self._land_at[1], self._land_at[2])
             self._land_at = None
         p = None if info.est is None else tuple(float(v) for v in np.asarray(info.est.p)[:3])
+        cause = sup.snapshot().cause
         with self._lock:
-            self._status = dataclasses.replace(self._status, t=t, p=p, state=state, cause=sup.snapshot().cause,
+            self._status = dataclasses.replace(self._status, t=t, p=p, state=state, cause=cause,
                                                ticks=self._status.ticks + 1)
+            self._trail.append((t, state, cause, p))
 
     # -- after a restart ----------------------------------------------------------------------
 

@@ -10,8 +10,9 @@ What runs where (docs/fleet-ray.md):
 - **driver** (this module): the pre-flight checks of the one-process fleet (separation,
   radio budget, unflyable configs, the model file), a refusal in one line when no node offers
   a drone's radio resource, and the fleet supervisor: it polls every actor's ``status()`` at
-  ``POLL_HZ`` and feeds the same ``FleetCoordinator`` (separation watch, ``fleet.on_fault``) the
-  local fleet uses; its landings, holds and timed landings go to the actors. The driver keeps
+  ``POLL_HZ`` (each reply carries every tick since the last) and feeds the ticks, in flight-time
+  order, to the same ``FleetCoordinator`` (separation watch, ``fleet.on_fault``) the local fleet
+  uses; its landings, holds and timed landings go to the actors. The driver keeps
   the fleet's e-stop mailbox entries (``sim-cf1`` ...) and forwards each request (``cfknode
   estop --all``) to the drone's actor; Ctrl-C goes to every actor. It writes a small fleet log
   (``/config``, the fleet's ``/events``, ``/summary`` with every drone's log paths and node).
@@ -37,7 +38,7 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.bench.executor import ExecutorSettings, connect_ray
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.drone_actor import DroneActor, DroneSpec, DroneStatus
+from cfknode.app.drone_actor import DroneActor, DroneSpec
 from cfknode.app.fleet import DroneResult, FleetCoordinator, FleetResult, drone_configs, preflight, true_min_separation
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.logs.writer import FlightLog
@@ -247,6 +248,43 @@ def _log_paths(ray: Any, actor: Any, flight: FlightResult) -> list[str]:
         return [flight.summary.log_path] if flight.summary.log_path else []
 
 
+class Timeline:
+    """The drones' ticks, fed to the coordinator in flight-time order and only up to the time every
+    drone still flying has reached, so the separation watch compares the drones at the same
+    instant (as the one-process fleet does) however far apart their actors' lockstep clocks run."""
+
+    def __init__(self, coordinator: FleetCoordinator, links: Sequence[_DroneLink]) -> None:
+        self._co, self._links = coordinator, links
+        self._queues: list[list[tuple[float, str, str, Any]]] = [[] for _ in links]
+        self._open = [True] * len(links)
+        self.last_t = [float("-inf")] * len(links)  # the latest tick reported by each drone
+
+    def add(self, i: int, trail: Sequence[tuple[float, str, str, Any]]) -> None:
+        if self._open[i] and trail:
+            self._queues[i].extend(trail)
+            self.last_t[i] = float(trail[-1][0])
+
+    def close(self, i: int, state: str, cause: str) -> None:
+        """Drone i reports no more: its ending follows its last tick, and it holds nobody back."""
+        if self._open[i]:
+            self._queues[i].append((max(self.last_t[i], 0.0), state, cause, None))
+            self._open[i] = False
+
+    def feed(self) -> None:
+        horizon = min((t for t, o in zip(self.last_t, self._open) if o), default=float("inf"))
+        due: list[tuple[float, int, str, str, Any]] = []
+        for i, queue in enumerate(self._queues):
+            n = 0
+            while n < len(queue) and queue[n][0] <= horizon:
+                due.append((queue[n][0], i, *queue[n][1:]))
+                n += 1
+            del queue[:n]
+        due.sort(key=lambda d: (d[0], d[1]))
+        for t, i, state, cause, p in due:
+            self._links[i].cause = cause
+            self._co.on_tick(i, _Polled(t, state, None if p is None else _Position(np.asarray(p, dtype=float))))
+
+
 async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink], boxes: Sequence[EstopMailbox],
                      coordinator: FleetCoordinator) -> list[FlightResult]:
     """Poll the actors until every flight has ended; the fleet policy and the e-stops act meanwhile."""
@@ -256,7 +294,7 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
     retry: list[int] = []  # drones whose flight call is asked again (of a restarting actor) next round
     results: list[FlightResult | None] = [None] * len(actors)
     polls: dict[Any, int] = {}
-    last_t = [0.0] * len(actors)
+    timeline = Timeline(coordinator, links)
     with contextlib.ExitStack() as stack:
         stack.enter_context(stop_signal_handler(_AllDrones(links)))
         for link, box in zip(links, boxes):
@@ -265,49 +303,46 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
             for i in retry:
                 flights[actors[i].fly.remote()] = i
             retry.clear()
+            asked = set(polls.values())
+            for i, a in enumerate(actors):
+                if results[i] is None and i not in restart_deadline and i not in asked:
+                    polls[a.status.remote()] = i
+            ready, _ = ray.wait(list(polls), num_returns=len(polls), timeout=0) if polls else ([], [])
+            for ref in ready:
+                i = polls.pop(ref)
+                with contextlib.suppress(*lost):  # restarting: its flight call says what happened
+                    timeline.add(i, ray.get(ref).trail)
             done, _ = ray.wait(list(flights), num_returns=len(flights), timeout=0)
             for ref in done:
                 i = flights.pop(ref)
+                name = coordinator.names[i]
                 try:
                     results[i] = ray.get(ref)
                 except lost as exc:
                     # Unavailable: the worker died and Ray restarts the actor; asked again, the restarted
                     # actor reports the lost flight. Died: no restart is left.
-                    if i not in restart_deadline:  # the drone is lost now: the fleet policy acts at once
-                        links[i].cause = LOST_CAUSE
-                        coordinator.on_tick(i, _Polled(last_t[i], "EMERGENCY", None))
+                    timeline.close(i, "EMERGENCY", LOST_CAUSE)  # lost now: the fleet policy acts at once
                     waiting = restart_deadline.setdefault(i, time.monotonic() + RESTART_WAIT_S)
                     if isinstance(exc, ray.exceptions.ActorUnavailableError) and time.monotonic() < waiting:
                         retry.append(i)
                         continue
                     why = str(exc).splitlines()[0][:200]
-                    results[i] = _ended(f"{coordinator.names[i]}: its Ray actor died and could not be restarted "
-                                        f"({why}); the flight is lost", LOST_CAUSE, last_t[i])
-                    continue  # already reported to the coordinator
+                    results[i] = _ended(f"{name}: its Ray actor died and could not be restarted ({why}); the "
+                                        "flight is lost", LOST_CAUSE, timeline.last_t[i])
+                    continue
                 except ray.exceptions.RayTaskError as exc:  # the flight raised in the actor: that drone's fault
                     why = str(getattr(exc, "cause", None) or exc).splitlines()[0][:200]
-                    results[i] = _ended(f"{coordinator.names[i]}: its flight failed in the actor: {why}",
-                                        ERROR_CAUSE, last_t[i])
+                    results[i] = _ended(f"{name}: its flight failed in the actor: {why}", ERROR_CAUSE,
+                                        timeline.last_t[i])
+                if i not in restart_deadline:  # the ticks since the last poll (in order), then the ending
+                    last = [r for r, k in polls.items() if k == i] + [actors[i].status.remote()]
+                    for r in last:
+                        polls.pop(r, None)
+                        with contextlib.suppress(Exception):
+                            timeline.add(i, ray.get(r, timeout=10.0).trail)
                 out = results[i].outcome
-                links[i].cause = out.cause if out.cause != "complete" else ""
-                coordinator.on_tick(i, _Polled(last_t[i], out.state.value, None))
-            asked = set(polls.values())
-            for i, a in enumerate(actors):
-                if results[i] is None and i not in asked:
-                    polls[a.status.remote()] = i
-            ready, _ = ray.wait(list(polls), num_returns=len(polls), timeout=0) if polls else ([], [])
-            for ref in ready:
-                i = polls.pop(ref)
-                try:
-                    status: DroneStatus = ray.get(ref)
-                except lost:
-                    continue  # restarting: its flight call says what happened
-                if results[i] is not None or i in restart_deadline or status.restarted or not status.state:
-                    continue
-                last_t[i] = status.t
-                links[i].cause = status.cause
-                est = None if status.p is None else _Position(np.array(status.p))
-                coordinator.on_tick(i, _Polled(status.t, status.state, est))
+                timeline.close(i, out.state.value, out.cause if out.cause != "complete" else "")
+            timeline.feed()
             await asyncio.sleep(1.0 / POLL_HZ)
     return [r for r in results if r is not None]
 
@@ -323,4 +358,4 @@ def _ended(text: str, cause: str, t: float) -> FlightResult:
     return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, cause, t))
 
 
-__all__ = ["RemoteCoordinator", "check_resources", "radio_resource", "run_fleet_ray"]
+__all__ = ["RemoteCoordinator", "Timeline", "check_resources", "radio_resource", "run_fleet_ray"]
