@@ -216,6 +216,8 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("fleet.radio_budget_pps", lambda v: v > 0, "> 0 packets/s"),
     ("fleet.ping_hz", lambda v: v >= 0, ">= 0 Hz"),
     ("fleet.drones_per_sim_radio", lambda v: v >= 1, ">= 1"),
+    ("fleet.ray_radio_resource", lambda v: bool(v.strip()) and not re.search(r"[{}]", v.replace("{radio}", "")),
+     "a Ray resource name, where {radio} stands for the radio index"),
     ("sim.downwash.peak_fraction", lambda v: 0 <= v <= 1, "in [0, 1]"),
     ("sim.downwash.height", lambda v: v > 0, "> 0 m"),
     ("sim.downwash.radius", lambda v: v > 0, "> 0 m"),

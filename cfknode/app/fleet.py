@@ -240,7 +240,10 @@ class FleetCoordinator:
             return  # already landing, landed or stopped: nothing to hold
         if self._p[k] is not None:
             self._refs[k].hold(t, self._p[k])
-        t_land = min(t_land, self._land_deadline[k])
+        self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
+
+    def _schedule_land(self, k: int, t_land: float, reason: str, cause: str) -> None:
+        """Land drone k at its time ``t_land`` (the earliest schedule wins); on_tick requests it."""
         if k not in self._land_at or t_land < self._land_at[k][0]:
             self._land_at[k] = (t_land, reason, cause)
 

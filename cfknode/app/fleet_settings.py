@@ -19,3 +19,4 @@ class FleetConfig:
     ping_hz: float  # cflib's link-statistics ping, per link
     drones_per_sim_radio: int  # simulated radios: sim://N is on simulated radio N // drones_per_sim_radio
     name_prefix: str  # drone names: <prefix>1, <prefix>2, ... (log channels /cf1/state, e-stop sim-cf1)
+    ray_radio_resource: str  # --executor ray: the Ray resource a drone's actor needs; "{radio}" is its radio index

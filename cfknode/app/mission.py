@@ -95,13 +95,17 @@ def run_flight(
     observers: Sequence[TickObserver] = (),
     on_supervisor: Callable[[Supervisor], None] | None = None,
     dashboard: Any = None,
+    trajectory: Any = None,
+    estop: bool = True,
 ) -> FlightResult:
     """Fly one mission with the configured backend and return its summary.
 
     ``observers`` get every tick (a training recorder, a dashboard); the injected faults'
     observers run after them. ``on_supervisor(supervisor)`` is called once before take-off,
     for operator controls outside the loop. ``dashboard`` is a rich Console to draw the live
-    dashboard on (None: headless); its space and q keys land the drone.
+    dashboard on (None: headless); its space and q keys land the drone. ``trajectory``: the
+    reference to fly instead of the configured one (a fleet drone's placed pattern). ``estop``
+    False: no e-stop mailbox entry of its own (a fleet's driver keeps the drone's entry).
     """
     refuse_in_spawned_import()
     if cfg.backend == "sim":
@@ -135,9 +139,10 @@ def run_flight(
     mpc = build_controller(flight_cfg)  # built (and compiled) before the clock starts
     # The trainer is up before the session starts the clock, so a wall-clock flight loses no take-off.
     # The e-stop mailbox first: a second flight of a flying robot is refused before anything connects.
-    with estop_mailbox(cfg, flight_cfg) as estop, start_trainer(flight_cfg) as trainer, session as sess:
+    box = estop_mailbox(cfg, flight_cfg) if estop else contextlib.nullcontext(None)
+    with box as estop_box, start_trainer(flight_cfg) as trainer, session as sess:
         return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
-                            estop, (*forced, *sess.events))
+                            estop_box, (*forced, *sess.events), trajectory)
 
 
 def estop_name(cfg: Config) -> str:
@@ -180,11 +185,13 @@ def _fly_session(
     trainer: Any,
     estop: EstopMailbox | None = None,
     events: Sequence[dict[str, Any]] = (),
+    trajectory: Any = None,
 ) -> FlightResult:
     from cfknode.app.learning import online_session
 
     cfg = sess.config
-    trajectory = make_trajectory(cfg.trajectory, sess.start_position)
+    if trajectory is None:
+        trajectory = make_trajectory(cfg.trajectory, sess.start_position)
     status = _dashboard_status(cfg) if dashboard is not None else None
     with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
         # Guarded: a failing write (or dashboard tap) is reported, never the end of the flight.

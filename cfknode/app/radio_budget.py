@@ -47,6 +47,17 @@ def radio_of(uri: str, drones_per_sim_radio: int) -> str:
     raise ConfigError(f"cannot tell which radio carries {uri!r} (expected radio://R/... or sim://N)")
 
 
+def radio_index(uri: str, drones_per_sim_radio: int) -> int:
+    """The index of the radio a URI's link goes through (Crazyradio R, or simulated radio N // per-radio)."""
+    m = _RADIO.match(uri)
+    if m is not None:
+        return int(m.group(1))
+    m = _SIM.match(uri)
+    if m is not None:
+        return int(m.group(1)) // drones_per_sim_radio
+    raise ConfigError(f"cannot tell which radio carries {uri!r} (expected radio://R/... or sim://N)")
+
+
 def radio_loads(loads: Sequence[LinkLoad], drones_per_sim_radio: int) -> dict[str, list[LinkLoad]]:
     """The links grouped by the radio that carries them, radios in first-use order."""
     out: dict[str, list[LinkLoad]] = {}
@@ -72,4 +83,4 @@ def check_radio_budget(loads: Sequence[LinkLoad], budget_pps: float, drones_per_
     return totals
 
 
-__all__ = ["LinkLoad", "check_radio_budget", "radio_loads", "radio_of"]
+__all__ = ["LinkLoad", "check_radio_budget", "radio_index", "radio_loads", "radio_of"]

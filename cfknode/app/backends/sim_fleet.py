@@ -29,6 +29,12 @@ from cfknode.sim_backend.link_driver import register_simulator, unregister_simul
 from cfknode.sim_backend.world import SimWorld
 
 
+def fault_free(faults: Any) -> Any:
+    """``faults`` with nothing injected: the fleet's drones after the first fly fault-free."""
+    return dataclasses.replace(faults, mocap_outages=(), radio_outages=(), solver_failures=(), nan_model_at=-1.0,
+                               battery_drop_at=-1.0, gusts=(), sigint_at=())
+
+
 class FleetDrone(SimulatorBackend):
     """One drone of the fleet as its flight sees it: the simulator backend on a member clock of the world."""
 
@@ -59,8 +65,7 @@ class FleetSimBackend:
         if len(set(uris)) != len(uris):
             raise ConfigError(f"fleet drones need distinct radio URIs, got {uris}")
         sims = [SimCrazyflie(c.vehicle, c.sim) for c in configs]
-        no_faults = dataclasses.replace(configs[0].faults, mocap_outages=(), radio_outages=(), solver_failures=(),
-                                        nan_model_at=-1.0, battery_drop_at=-1.0, gusts=(), sigint_at=())
+        no_faults = fault_free(configs[0].faults)
         faults = [install_faults(sim, c.faults if i == 0 else no_faults) for i, (sim, c) in enumerate(zip(sims, configs))]
         try:
             world = SimWorld(sims, configs[0].sim.downwash)
@@ -97,4 +102,4 @@ class FleetSimBackend:
         return {d.name: d.sim.firmware.supervisor_state for d in self.drones}
 
 
-__all__ = ["FleetDrone", "FleetSimBackend"]
+__all__ = ["FleetDrone", "FleetSimBackend", "fault_free"]

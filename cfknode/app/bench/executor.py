@@ -183,21 +183,29 @@ def _call(fn: Callable[[Any], Any], task: Any) -> Any:
     return fn(task)
 
 
+def connect_ray(address: str | None, num_cpus: int, resources: dict[str, float] | None = None) -> bool:
+    """Join the cluster at ``address``, or start a local Ray with ``num_cpus`` CPUs (and custom
+    ``resources``) for this run only; a Ray this process already joined is used as it is.
+    True when this call joined or started it, so the caller shuts it down."""
+    import ray  # optional: only the Ray paths need it
+
+    if ray.is_initialized():
+        return False
+    if address:
+        ray.init(address=address, logging_level="warning", log_to_driver=True)
+    else:
+        # ExecutorSettings.from_args already folded RAY_ADDRESS into the address.
+        ray.init(address="local", num_cpus=num_cpus, resources=resources or None, include_dashboard=False,
+                 logging_level="warning", runtime_env={"env_vars": THREAD_ENV})
+    return True
+
+
 class _Ray:
     def __init__(self, settings: ExecutorSettings) -> None:
         import ray  # optional: only this path needs it
 
         self._ray = ray
-        self._owned = False
-        if settings.address:
-            if not ray.is_initialized():
-                ray.init(address=settings.address, logging_level="warning", log_to_driver=True)
-                self._owned = True
-        elif not ray.is_initialized():
-            # Started for this run only (from_args already folded RAY_ADDRESS into settings.address).
-            ray.init(address="local", num_cpus=settings.jobs * settings.cpus_per_task, include_dashboard=False,
-                     logging_level="warning", runtime_env={"env_vars": THREAD_ENV})
-            self._owned = True
+        self._owned = connect_ray(settings.address, settings.jobs * settings.cpus_per_task)
         self._remote = ray.remote(num_cpus=settings.cpus_per_task, max_retries=settings.max_retries)(_call)
         self._running: dict[Any, int] = {}
 
@@ -304,5 +312,5 @@ def run_ordered(fn: Callable[[Any], Any], tasks: Iterable[Any], settings: Execut
     return [done[i] for i in range(len(done))]
 
 
-__all__ = ["ExecutorSettings", "KINDS", "RAY_MISSING", "Runner", "add_executor_arguments", "open_runner",
+__all__ = ["ExecutorSettings", "KINDS", "RAY_MISSING", "Runner", "add_executor_arguments", "connect_ray", "open_runner",
            "run_ordered", "run_tasks"]

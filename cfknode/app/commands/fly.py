@@ -81,6 +81,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fleet", type=int, metavar="N", help="fly N simulated drones in one flight (docs/fleet.md)")
     p.add_argument("--fleet-layout", dest="fleet_layout", choices=["ring", "stack"],
                    help="fleet: evenly spaced on the circle (ring) or stacked heights (stack)")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="fleet: local flies every drone in this process (default); ray makes each drone a Ray actor "
+                        "on the node with its radio (docs/fleet-ray.md)")
+    p.add_argument("--address", default=None,
+                   help="with --executor ray: the Ray cluster (default: $RAY_ADDRESS, else a local Ray for the flight)")
     p.add_argument("--name", default=None,
                    help=f"name hint for the log file (up to {NAME_MAX} of A-Z a-z 0-9 . _ -)")
 
@@ -145,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--name must be 1 to {NAME_MAX} of the characters A-Z a-z 0-9 . _ - "
                          f"(it names the log file), got {shown!r} ({len(args.name)} characters)")
     cfg = config_from_args(args)  # validate before importing the heavy parts
+    if getattr(args, "address", None) is not None and getattr(args, "executor", "local") != "ray":
+        raise UsageError("--address needs --executor ray")
+    if getattr(args, "executor", "local") == "ray" and cfg.fleet.size < 2:
+        raise UsageError("--executor ray flies a fleet (--fleet N, N >= 2); a single flight runs here")
     if len(args.robot_names) > 1:
         from cfknode.app.commands.fly_fleet import run_robots_command
 

@@ -18,9 +18,22 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
 
     out = sys.stderr if args.json else sys.stdout
     t = cfg.trajectory
+    ray = getattr(args, "executor", "local") == "ray"
     print(f"cfknode fly: fleet of {cfg.fleet.size} ({cfg.fleet.layout}), {t.kind} r={t.radius} m at {t.speed} m/s "
           f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
-          "lockstep simulation", file=out)
+          "lockstep simulation" + (" (a Ray actor per drone)" if ray else ""), file=out)
+    if ray:
+        from cfknode.app.bench.executor import ExecutorSettings
+        from cfknode.app.fleet_ray import run_fleet_ray
+        from cfknode.app.mission import MissionError
+
+        settings = ExecutorSettings.from_args(args, default_jobs=cfg.fleet.size)
+        try:  # the driver routes Ctrl-C, SIGTERM and SIGHUP to every actor (cfknode/app/fleet_ray.py)
+            result = run_fleet_ray(cfg, settings, name_hint=args.name or f"fleet{cfg.fleet.size}")
+        except MissionError as exc:  # the cluster could not be joined or could not place the drones
+            print(f"cfknode: error: {exc}", file=sys.stderr)
+            return 1
+        return report(cfg, result, args)
     # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
     dashboard = fleet_dashboard(cfg, args)
     with ProcessSignals() as signals:
@@ -29,7 +42,6 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     if dashboard is not None and dashboard.error is not None:
         print(f"cfknode: the dashboard failed ({dashboard.error}); the flight went on without it", file=sys.stderr)
     return report(cfg, result, args)
-
 
 def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespace) -> int:
     """Fly the named robots together in real time; exit status as for ``--fleet``, and 1 when a
@@ -74,6 +86,8 @@ def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
         learned = f", models accepted {models}" if models is not None else ""
         print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
               f"p99 {s.compute_p99_ms:.2f} ms{learned}: {d.outcome.message}", file=out)
+        for path in s.extra.get("logs", ()):  # --executor ray: each drone's own logs, on its node
+            print(f"{d.name} log {path} (node {str(s.extra.get('ray_node', ''))[:12]})", file=out)
     for event in result.events:
         print(f"fleet: {event}", file=out)
     radios = ", ".join(f"{r} {pps:g}/s" for r, pps in result.radio_pps.items())
