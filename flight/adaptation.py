@@ -41,6 +41,12 @@ class AdaptationSettings:
     axis_gain_bounds: tuple[float, float]
     stale_pose_s: float  # s without a fresh mocap pose: frozen
     rebase_window_s: float  # s of recent ticks the re-base at a model swap averages over
+    thrust_lag_s: float | None = None  # s, first-order lag from the thrust sent to the thrust acting (None: vehicle's)
+    step_threshold: float = 0.0  # alarm level of the vertical step detector (CUSUM of noise-normalised surprise); 0 off
+    step_bandwidth_hz: float = 10.0  # vertical cut-off while a detected step is being tracked
+    step_thrust_rate: float = 400.0  # 1/s, thrust_rate while a detected step is being tracked
+    step_hold_s: float = 0.3  # s after an alarm at the step bandwidth and rate
+    oracle_delay_s: float = 0.0  # s, the oracle reference only (adaptation_oracle.py)
 
     @property
     def enabled(self) -> bool:
@@ -54,6 +60,7 @@ class AdaptationEstimate:
     axis_gain: np.ndarray  # (3,) delivered / commanded horizontal acceleration (z is 1)
     frozen: bool = False  # no update this tick (stale pose or not flying)
     saturated: bool = False  # the last applied command was at the thrust clamp or the tilt limit
+    stepping: bool = False  # a vertical step was detected and is being tracked at the step bandwidth
 
     @classmethod
     def neutral(cls) -> AdaptationEstimate:
@@ -61,7 +68,7 @@ class AdaptationEstimate:
 
     def to_log(self) -> dict[str, object]:
         return {"offset": self.offset, "thrust_scale": self.thrust_scale, "axis_gain": self.axis_gain[:2],
-                "frozen": self.frozen, "saturated": self.saturated}
+                "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping}
 
 
 # ---------------------------------------------------------------- pure math
@@ -128,6 +135,16 @@ def rebase_offset(offset: np.ndarray, old_acc: np.ndarray, new_acc: np.ndarray, 
     return np.clip(offset + shift, -bound, bound)
 
 
+STEP_DRIFT = 0.5  # CUSUM drift, in noise std: surprise below half a std never accumulates
+NOISE_FRAMES = 100  # mocap frames the surprise noise level averages over (1 s at 100 Hz)
+NOISE_FLOOR = 1e-4  # m/s per frame: below this the surprise is numerics, not noise
+
+
+def cusum_step(g: tuple[float, float], z: float, drift: float = STEP_DRIFT) -> tuple[float, float]:
+    """Two-sided CUSUM on the normalised surprise ``z``: (upward, downward) sums, each floored at 0."""
+    return max(0.0, g[0] + z - drift), max(0.0, g[1] - z - drift)
+
+
 # ---------------------------------------------------------------- state
 
 
@@ -141,6 +158,7 @@ class FastAdaptation:
         self.g = gravity
         self.dt = 1.0 / rate_hz
         self.omega = 2.0 * math.pi * np.array([settings.bandwidth_xy_hz, settings.bandwidth_xy_hz, settings.bandwidth_hz])
+        self.omega_step = 2.0 * math.pi * max(settings.step_bandwidth_hz, settings.bandwidth_hz)
         n = max(1, int(round(settings.rebase_window_s * rate_hz)))
         self._buf_x = np.zeros((n, 6))
         self._buf_u = np.zeros((n, 3))
@@ -149,6 +167,7 @@ class FastAdaptation:
         self._buf_i = 0
         self.resets = 0
         self.rebases = 0
+        self.steps = 0  # vertical steps detected
         self.reset()
 
     def reset(self) -> None:
@@ -160,6 +179,16 @@ class FastAdaptation:
         self._last_fresh_t = -math.inf
         self._t_prev: float | None = None
         self._buf_len = self._buf_i = 0
+        self._cusum = (0.0, 0.0)
+        self._noise_var = 0.0  # (m/s)^2 per frame: the vertical surprise's noise
+        self._v_prev: float | None = None
+        self._step_until = -math.inf
+        self._omega_z = float(self.omega[2])  # the vertical bandwidth the observer's state is scaled for
+        self._frames = 0  # mocap frames the detector has seen since the reset
+        self._frame_surprise = 0.0
+        self._t_frame: float | None = None
+        self._run = [[0.0, 0.0], [0.0, 0.0]]  # per CUSUM side: summed surprise (m/s) and its span (s)
+        self._jump = 0.0  # m/s^2 added to the vertical estimate at an alarm
         self.resets += 1
 
     def update(
@@ -183,11 +212,21 @@ class FastAdaptation:
         thrust_sat, tilt_sat = saturated
         if stale or self._obs is None or dt <= 0.0:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement
+            self._v_prev = None
             self.estimate = replace(self.estimate, frozen=True, saturated=thrust_sat or tilt_sat)
             return self.estimate
 
+        stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
+        omega = self.omega if not stepping else np.array([self.omega[0], self.omega[1], self.omega_step])
         if self.s.mode == "dob":
-            self._obs, new_sigma = dob_step(self._obs, v_meas, model_acc, self.omega, dt)
+            if omega[2] != self._omega_z or self._jump:  # switch: rescale so that sigma continues (+ the jump)
+                self._sigma = self._sigma.copy()
+                self._sigma[2] = float(np.clip(self._sigma[2] + self._jump, -self.s.max_offset, self.s.max_offset))
+                self._jump = 0.0
+                self._obs = self._obs.copy()
+                self._obs[2] = v_meas[2] - self._sigma[2] / omega[2]
+                self._omega_z = float(omega[2])
+            self._obs, new_sigma = dob_step(self._obs, v_meas, model_acc, omega, dt)
         else:
             self._obs, self._sigma_hat, new_sigma = l1_step(
                 self._obs, self._sigma_hat, self._sigma, v_meas, model_acc,
@@ -197,19 +236,69 @@ class FastAdaptation:
         # Projection: the estimate stays in its box (the observer is told, so it does not wind up beyond it).
         bounded = np.clip(new_sigma, -self.s.max_offset, self.s.max_offset)
         if np.any(bounded != new_sigma):
-            self._shift_observer(bounded - new_sigma)
+            self._shift_observer(bounded - new_sigma, omega)
         self._sigma = bounded
-        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt)
+        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega)
         self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
         return self.estimate
 
-    def _settle(self, u: np.ndarray, u_cmd: np.ndarray | None, thrust_sat: bool, tilt_sat: bool, dt: float) -> None:
+    def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool) -> bool:
+        """True while a vertical step (a mass change, a payload) is being tracked fast.
+
+        The surprise is the vertical velocity change that the model plus the current estimate did not predict,
+        summed from one mocap frame to the next (between frames the velocity is a prediction: only frames carry
+        news). Its noise level is learned in flight, so one threshold holds at 0.3 and at 2 mm of mocap noise; a
+        CUSUM of the normalised frame surprise raises the alarm: noise averages out, a step adds up."""
+        if self.s.step_threshold <= 0.0 or self.s.mode != "dob":
+            return False
+        v_prev, self._v_prev = self._v_prev, v_z
+        stepping = t < self._step_until
+        if v_prev is None:
+            return stepping
+        self._frame_surprise += v_z - v_prev - dt * (a_z + float(self._sigma[2]))
+        if not fresh:
+            return stepping
+        surprise, self._frame_surprise = self._frame_surprise, 0.0
+        # The noise level is learned all the time (a step's few large surprises move it little); alarms wait
+        # until it has seen a window of frames.
+        self._frames += 1
+        k = 1.0 / min(self._frames, NOISE_FRAMES)
+        self._noise_var = (1.0 - k) * self._noise_var + k * surprise * surprise
+        if self._frames < NOISE_FRAMES:
+            return stepping
+        std = math.sqrt(max(self._noise_var, NOISE_FLOOR ** 2))
+        before = self._cusum
+        self._cusum = cusum_step(self._cusum, surprise / std)
+        # What each side's run has not been explained: summed surprise and its duration since that sum left 0.
+        for i in (0, 1):
+            if before[i] <= 0.0:
+                self._run[i] = [0.0, 0.0]
+            if self._cusum[i] > 0.0:
+                self._run[i][0] += surprise
+                self._run[i][1] += t - self._t_frame if self._t_frame is not None else 0.0
+        self._t_frame = t
+        side = 0 if self._cusum[0] >= self._cusum[1] else 1
+        if self._cusum[side] > self.s.step_threshold and not thrust_sat:
+            if not stepping:
+                self.steps += 1
+                dv, span = self._run[side]
+                if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
+                    self._jump = dv / span
+            self._step_until = t + self.s.step_hold_s
+            self._cusum = (0.0, 0.0)
+            self._run = [[0.0, 0.0], [0.0, 0.0]]
+            return True
+        return stepping
+
+    def _settle(self, u: np.ndarray, u_cmd: np.ndarray | None, thrust_sat: bool, tilt_sat: bool, dt: float,
+                stepping: bool = False, omega: np.ndarray | None = None) -> None:
         """Move sigma into the thrust scale, update the axis gains, then publish the remaining offset (bounded)."""
         est, s = self.estimate, self.s
         scale, gain = est.thrust_scale, est.axis_gain.copy()
         sigma = self._sigma
         # Moving held error into s is no integration: it changes no prediction (see sigma_after_transfer).
-        new_scale = thrust_transfer(float(sigma[2]), float(u[2]), self.g, scale, s.thrust_rate, dt, s.thrust_scale_bounds)
+        rate = s.step_thrust_rate if stepping else s.thrust_rate
+        new_scale = thrust_transfer(float(sigma[2]), float(u[2]), self.g, scale, rate, dt, s.thrust_scale_bounds)
         new_gain = gain.copy()
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
             for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness
@@ -217,7 +306,7 @@ class FastAdaptation:
                                             s.axis_gain_bounds)
         if new_scale != scale:
             moved = sigma_after_transfer(sigma, u, self.g, scale, new_scale)
-            self._shift_observer(moved - sigma)
+            self._shift_observer(moved - sigma, omega)
             self._sigma = moved
         offset = np.clip(self._sigma, -s.max_offset, s.max_offset)
         # Second half: on a saturated axis the MPC's offset is held; a growing one would only push the plan
@@ -225,20 +314,22 @@ class FastAdaptation:
         hold = np.array([tilt_sat, tilt_sat, thrust_sat])
         if hold.any():
             offset = np.where(hold, est.offset, offset)
-        self.estimate = AdaptationEstimate(offset, new_scale, new_gain, frozen=False, saturated=thrust_sat or tilt_sat)
+        self.estimate = AdaptationEstimate(offset, new_scale, new_gain, frozen=False, saturated=thrust_sat or tilt_sat,
+                                           stepping=stepping)
 
-    def _shift_observer(self, d_sigma: np.ndarray) -> None:
+    def _shift_observer(self, d_sigma: np.ndarray, omega: np.ndarray | None = None) -> None:
         """Make the observer report sigma + d_sigma from now on (its prediction continues from there)."""
         if self._obs is None:
             return
         if self.s.mode == "dob":
-            self._obs = self._obs - d_sigma / self.omega
+            self._obs = self._obs - d_sigma / (self.omega if omega is None else omega)
         else:
             self._sigma_hat = self._sigma_hat + d_sigma
 
     def _sync(self, v: np.ndarray) -> None:
         if self.s.mode == "dob":
             self._obs = v - self._sigma / self.omega
+            self._omega_z = float(self.omega[2])
         else:
             self._obs = v.copy()
             self._sigma_hat = self._sigma.copy()

@@ -12,6 +12,7 @@ mocap is stale (inside ``FastAdaptation``); re-based when the model slot's versi
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,9 @@ class LoopAdaptation:
         self._u = np.zeros(3)  # last command after the Mellinger layer's limits (model input space)
         self._r = np.zeros(3)  # the model's residual for it
         self._thrust = 0.0  # N, collective thrust sent for it
+        self._thrust_acting: float | None = None  # N, the sent thrust through the motors' lag: what acts now
+        lag = ctrl.adaptation_settings.thrust_lag_s
+        self._lag = vehicle.motor_time_constant if lag is None else lag
         self._sat = (False, False)
         self._have_command = False
         self._version: int | None = None
@@ -78,7 +82,8 @@ class LoopAdaptation:
         w, x, y, z = (float(c) for c in q)
         bz = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
-        return self._thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
+        thrust = self._thrust if self._thrust_acting is None else self._thrust_acting
+        return thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
         """The MPC's residual: the model's, with the offset added to every stage's constant."""
@@ -102,6 +107,13 @@ class LoopAdaptation:
             r = model_residual.c[0] + model_residual.jx[0] @ x0 + model_residual.ju[0] @ u
         self._u, self._r = u, r
         self._thrust = thrust_cmd * self.vehicle.newton_per_cmd
+        # The observer compares the vehicle with the thrust that acts, not the one just sent: without the motors'
+        # lag every thrust change looks like a disturbance for a few ticks, and a fast observer rings on it.
+        if self._thrust_acting is None or not self._have_command or self._lag <= 0.0:
+            self._thrust_acting = self._thrust
+        else:
+            self._thrust_acting += (1.0 - math.exp(-1.0 / (self.ctrl.rate_hz * self._lag))) * (
+                self._thrust - self._thrust_acting)
         self._sat = (shaped.thrust_saturated, shaped.tilt_saturated)
         self.saturated_ticks += int(shaped.thrust_saturated or shaped.tilt_saturated)
         self._have_command = True
@@ -123,6 +135,7 @@ class LoopAdaptation:
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {"adaptation": self.layer.s.mode, "adaptation_thrust_scale_end": round(e.thrust_scale, 4),
+                "adaptation_steps": self.layer.steps,
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases}

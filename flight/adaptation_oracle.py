@@ -5,10 +5,14 @@ mass over the nominal one, read every tick, and the acceleration offset stays 0.
 interface of ``LoopAdaptation`` (``adaptation_loop.py``), so the thrust cone and the Mellinger
 layer see it exactly as they see the adaptive layers; only the estimate differs. Simulation only:
 on hardware there is no true mass to read (``mission.py`` refuses it).
+
+``adaptation_settings.oracle_delay_s`` tells it the true mass that much later: a bound for any
+estimator that needs that long to see a change (one mocap frame is 10 ms at 100 Hz).
 """
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any, Callable
 
 import numpy as np
@@ -24,6 +28,8 @@ class OracleAdaptation:
     def __init__(self, ctrl: ControllerConfig, vehicle: VehicleConfig, true_mass: Callable[[], float]) -> None:
         self.ctrl, self.vehicle = ctrl, vehicle
         self._true_mass = true_mass
+        self._delay = float(ctrl.adaptation_settings.oracle_delay_s)
+        self._heard: deque[tuple[float, float]] = deque()  # (t, true mass) not yet older than the delay
         self._estimate = AdaptationEstimate.neutral()
         self.saturated_ticks = 0
 
@@ -40,7 +46,10 @@ class OracleAdaptation:
         """Nothing to forget: the next tick reads the true mass again."""
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
-        scale = float(self._true_mass()) / self.vehicle.mass
+        self._heard.append((now, float(self._true_mass())))
+        while len(self._heard) > 1 and self._heard[1][0] <= now - self._delay + 1e-9:
+            self._heard.popleft()  # the newest sample at least ``delay`` old stays first
+        scale = self._heard[0][1] / self.vehicle.mass
         self._estimate = AdaptationEstimate(np.zeros(3), scale, np.ones(3))
         return self._estimate
 

@@ -23,6 +23,12 @@ class AdaptationTuning:
     axis_gain_bounds: tuple[float, float]
     stale_pose_s: float
     rebase_window_s: float
+    thrust_lag_s: float | None = None  # s, the motors' thrust lag the observer models; None: the vehicle's
+    step_threshold: float = 0.0  # vertical step detector's alarm level (noise-normalised CUSUM); 0 = off
+    step_bandwidth_hz: float = 10.0  # vertical bandwidth for ``step_hold_s`` after an alarm
+    step_thrust_rate: float = 400.0  # 1/s, thrust_rate for ``step_hold_s`` after an alarm
+    step_hold_s: float = 0.3  # s the fast estimate lasts after an alarm
+    oracle_delay_s: float = 0.0  # s, adaptation "oracle" only: the true mass is told this late
 
 
 @dataclass(frozen=True)

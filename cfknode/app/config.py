@@ -143,6 +143,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
     ("controller.adaptation_settings.stale_pose_s", lambda v: v > 0, "> 0 s"),
     ("controller.adaptation_settings.rebase_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
+    ("controller.adaptation_settings.thrust_lag_s", lambda v: v is None or 0 <= v <= 0.5, "null or in [0, 0.5] s"),
     ("estimator.latency", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
     ("estimator.command_delay", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
     ("trajectory.radius", lambda v: v > 0, "> 0"),

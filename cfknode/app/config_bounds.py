@@ -97,6 +97,11 @@ BOUNDS: dict[str, Bound] = {
     "controller.adaptation_settings.axis_gain_bounds": _b(0.1, 10, open_low=True),
     "controller.adaptation_settings.stale_pose_s": _b(0, 1, "s", open_low=True),
     "controller.adaptation_settings.rebase_window_s": _b(0, 5, "s", open_low=True),
+    "controller.adaptation_settings.step_threshold": _b(0, 1000),
+    "controller.adaptation_settings.step_bandwidth_hz": _b(0, 50, "Hz", open_low=True),
+    "controller.adaptation_settings.step_thrust_rate": _b(0, 1000, "1/s"),
+    "controller.adaptation_settings.step_hold_s": _b(0, 5, "s"),
+    "controller.adaptation_settings.oracle_delay_s": _b(0, 1, "s"),
     # Estimator.
     "estimator.process_accel_std": _b(0, 100, "m/s^2", open_low=True),
     "estimator.position_std": _b(1e-5, 0.1, "m"),  # the Kalman filter needs a noise > 0

@@ -64,6 +64,8 @@ CONTROLLER_OVERRIDES: dict[str, Any] = {
     "dob": lambda model: {"controller.adaptation": "dob"},
     "online_dob": lambda model: {"online.enabled": True, "controller.adaptation": "dob"},
     "oracle": lambda model: {"controller.adaptation": "oracle"},  # a reference: the true mass every tick
+    # The same, 20 ms late: what an estimator that needs two mocap frames to see a change could at best do.
+    "oracle_late": lambda model: {"controller.adaptation": "oracle", "controller.adaptation_settings.oracle_delay_s": 0.02},
 }
 
 

@@ -184,7 +184,8 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
          "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),
          "saturated": _bool("the last command was cut by the thrust clamp or the tilt limit")},
-        {"f_max": _num("specific thrust at the clamp for the estimated mass, m/s^2"), "mode": _str("dob or l1")},
+        {"f_max": _num("specific thrust at the clamp for the estimated mass, m/s^2"), "mode": _str("dob or l1"),
+         "stepping": _bool("a vertical step was detected and is tracked at the step bandwidth")},
     ),
     ChannelSpec(
         "/summary", "cfknode.Summary", "The flight summary (cfknode.app.ui.summary.FlightSummary.to_dict()).",
