@@ -237,14 +237,20 @@ class MotioncaptureSource:
 
     def close(self) -> None:
         self._stop = True
-        closer = getattr(self._client, "close", None)
-        if closer is not None:
-            closer()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=1.0)
-        release = getattr(self._client, "release", None)
-        if release is not None and not self._thread.is_alive():
-            release()
+        close_client(self._client, self._thread)
+
+
+def close_client(client: Any, reader: threading.Thread) -> None:
+    """Close an SDK connection its reader thread blocks on, join the reader, then release the client
+    (only once the reader is gone: releasing under a blocked read crashes some SDKs)."""
+    closer = getattr(client, "close", None)
+    if closer is not None:
+        closer()
+    if reader.is_alive() and reader is not threading.current_thread():
+        reader.join(timeout=1.0)
+    release = getattr(client, "release", None)
+    if release is not None and not reader.is_alive():
+        release()
 
 
 def _pose_of(body: Any, t: float) -> Pose | None:

@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 from cfknode.mocap.motioncapture_source import (
     Connector,
     MotioncaptureSource,
+    close_client,
     connect_with_deadline,
     default_connector,
     motioncapture_config,
@@ -94,14 +95,7 @@ class MocapHub:
         self._stop = True
         for src in self.sources.values():
             src.close()
-        closer = getattr(self._client, "close", None)
-        if closer is not None:
-            closer()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=1.0)
-        release = getattr(self._client, "release", None)
-        if release is not None and not self._thread.is_alive():
-            release()
+        close_client(self._client, self._thread)
 
 
 __all__ = ["MocapHub", "SharedBodySource"]

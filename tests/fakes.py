@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -110,3 +111,35 @@ SHORT_FLIGHT = {
     "trajectory.land_duration": 1.0,
     "trajectory.ramp_duration": 0.4,
 }
+
+
+def wait_for_log_events(proc: Any, logs: Any, topics: list[str], text: str, wait_s: float) -> None:
+    """Until the flight log in ``logs`` has an event containing ``text`` on every one of ``topics``
+    (events are flushed at once); fails the test after ``wait_s`` or when ``proc`` ends first."""
+    import time
+
+    import pytest
+
+    from cfknode.app.logs.writer import LogError, read_log
+
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        for path in logs.glob("*.mcap"):
+            try:
+                log = read_log(path)
+            except LogError:
+                continue
+            if all(any(text in m["text"] for m in log.topic(topic)) for topic in topics):
+                return
+        time.sleep(0.05)
+    proc.kill()
+    pytest.fail(f"no event {text!r} on {', '.join(topics)} within {wait_s} s")
+
+
+def finish_json(proc: Any, wait_s: float) -> tuple[int, dict, str]:
+    """Exit status, the JSON it printed on stdout, and its stderr."""
+    import json
+
+    out, err = proc.communicate(timeout=wait_s)
+    return proc.returncode, json.loads(out), err

@@ -5,7 +5,6 @@ the events, and the exit status is the single flight's (1 once the fleet has a c
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import signal
 import subprocess
@@ -16,15 +15,16 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from cfknode.flight.controller import TickInfo
+from cfknode.safety.operator import stop_signal_handler
+from cfknode.safety.process_signals import ProcessSignals
+from fakes import finish_json, wait_for_log_events
 
 from cfknode.app import fleet
 from cfknode.app.config import load_config
 from cfknode.app.fleet import FleetCoordinator, drone_configs
-from cfknode.app.logs.writer import LogError, read_log
-from cfknode.flight.controller import TickInfo
+from cfknode.app.logs.writer import read_log
 from cfknode.kernel.setpoint import AttitudeSetpoint
-from cfknode.safety.operator import stop_signal_handler
-from cfknode.safety.process_signals import ProcessSignals
 
 WAIT_S = 240.0  # generous: the machine is shared; the flights themselves take seconds
 NAMES = ("cf1", "cf2")
@@ -129,25 +129,11 @@ def _start(tmp_path: Path, *sets: str) -> subprocess.Popen[str]:
 
 
 def _wait_for_events(proc: subprocess.Popen[str], logs: Path, text: str) -> None:
-    """Until every drone's /<name>/events (flushed at once) has an event containing ``text``."""
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
-        for path in logs.glob("*.mcap"):
-            try:
-                log = read_log(path)
-            except LogError:
-                continue
-            if all(any(text in m["text"] for m in log.topic(f"/{n}/events")) for n in NAMES):
-                return
-        time.sleep(0.05)
-    proc.kill()
-    pytest.fail(f"no event {text!r} for every drone within {WAIT_S} s")
+    wait_for_log_events(proc, logs, [f"/{n}/events" for n in NAMES], text, WAIT_S)
 
 
 def _finish(proc: subprocess.Popen[str]) -> tuple[int, dict, str]:
-    out, err = proc.communicate(timeout=WAIT_S)
-    return proc.returncode, json.loads(out), err
+    return finish_json(proc, WAIT_S)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])

@@ -16,9 +16,10 @@ import time
 from pathlib import Path
 
 import pytest
-
-from cfknode.app.logs.writer import LogError, read_log
 from cfknode.safety.process_signals import ProcessSignals, StopSignal
+from fakes import finish_json, wait_for_log_events
+
+from cfknode.app.logs.writer import read_log
 
 WAIT_S = 240.0  # generous: the machine is shared; the flights themselves take seconds
 
@@ -32,25 +33,11 @@ def _start(tmp_path: Path, *sets: str) -> subprocess.Popen[str]:
 
 
 def _wait_for_event(proc: subprocess.Popen[str], logs: Path, text: str) -> None:
-    """Until the flight log's /events (flushed at once) has an event containing ``text``."""
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
-        for path in logs.glob("*.mcap"):
-            try:
-                events = [m["text"] for m in read_log(path).topic("/events")]
-            except LogError:
-                continue
-            if any(text in e for e in events):
-                return
-        time.sleep(0.05)
-    proc.kill()
-    pytest.fail(f"no event {text!r} within {WAIT_S} s")
+    wait_for_log_events(proc, logs, ["/events"], text, WAIT_S)
 
 
 def _finish(proc: subprocess.Popen[str]) -> tuple[int, dict, str]:
-    out, err = proc.communicate(timeout=WAIT_S)
-    return proc.returncode, json.loads(out), err
+    return finish_json(proc, WAIT_S)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
