@@ -245,3 +245,13 @@ def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
     assert [d.outcome.cause for d in result.drones] == ["estop_land", "estop_land"]
     assert all(d.outcome.state.value == "LANDED" for d in result.drones)
     assert all(d.record.t[-1] < 8.0 for d in result.drones)  # landed well before the mission's end
+
+
+def test_online_learning_is_refused_for_a_ray_fleet_before_ray_starts(tmp_path):
+    from cfknode.app.bench.executor import ExecutorSettings
+    from cfknode.app.config import ConfigError, load_config
+    from cfknode.app.fleet_ray import run_fleet_ray
+
+    cfg = load_config(overrides={"fleet.size": 2, "online.enabled": True, "log.dir": str(tmp_path)})
+    with pytest.raises(ConfigError, match="executor local"):
+        run_fleet_ray(cfg, ExecutorSettings(kind="ray", jobs=2, address=None))

@@ -155,6 +155,9 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
     from cfknode.sim_backend.faults import check_faults
 
     cfg = _absolute_paths(cfg)
+    if cfg.online.enabled:  # each actor would spawn its own trainer inside a Ray worker: not tried yet
+        raise ConfigError("online learning is not wired for --executor ray fleets: fly the fleet on one machine "
+                          "(--executor local) to learn online")
     names, configs, refs = drone_configs(cfg)
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
     radio_pps = preflight(cfg, names, configs, refs)
