@@ -41,7 +41,8 @@ class AdaptationSettings:
     axis_gain_bounds: tuple[float, float]
     stale_pose_s: float  # s without a fresh mocap pose: frozen
     rebase_window_s: float  # s of recent ticks the re-base at a model swap averages over
-    thrust_lag_s: float | None = None  # s, first-order lag from the thrust sent to the thrust acting (None: vehicle's)
+    thrust_lag_s: float | None = None  # s, first-order lag from the thrust sent to the thrust acting (None: chosen)
+    thrust_lag_candidates_s: tuple[float, ...] = (0.015, 0.04, 0.08, 0.15)  # s, the lags chosen among when None
     step_threshold: float = 0.0  # alarm level of the vertical step detector (CUSUM of noise-normalised surprise); 0 off
     step_bandwidth_hz: float = 10.0  # vertical cut-off while a detected step is being tracked
     step_thrust_rate: float = 400.0  # 1/s, thrust_rate while a detected step is being tracked
@@ -138,6 +139,12 @@ def rebase_offset(offset: np.ndarray, old_acc: np.ndarray, new_acc: np.ndarray, 
 STEP_DRIFT = 0.5  # CUSUM drift, in noise std: surprise below half a std never accumulates
 NOISE_FRAMES = 100  # mocap frames the surprise noise level averages over (1 s at 100 Hz)
 NOISE_FLOOR = 1e-4  # m/s per frame: below this the surprise is numerics, not noise
+# Alarms in a row are no step: the plant responds otherwise than modelled (a slower motor, say), and the fast
+# estimate would ring on it. An alarm within REARM_S of the last one's end doubles the threshold (up to
+# MAX_THRESHOLD_SCALE); QUIET_RESET_S without an alarm restores it.
+REARM_S = 1.0
+MAX_THRESHOLD_SCALE = 16.0
+QUIET_RESET_S = 10.0
 
 
 def cusum_step(g: tuple[float, float], z: float, drift: float = STEP_DRIFT) -> tuple[float, float]:
@@ -189,6 +196,8 @@ class FastAdaptation:
         self._t_frame: float | None = None
         self._run = [[0.0, 0.0], [0.0, 0.0]]  # per CUSUM side: summed surprise (m/s) and its span (s)
         self._jump = 0.0  # m/s^2 added to the vertical estimate at an alarm
+        self._threshold_scale = 1.0
+        self._last_alarm = -math.inf
         self.resets += 1
 
     def update(
@@ -278,8 +287,13 @@ class FastAdaptation:
                 self._run[i][1] += t - self._t_frame if self._t_frame is not None else 0.0
         self._t_frame = t
         side = 0 if self._cusum[0] >= self._cusum[1] else 1
-        if self._cusum[side] > self.s.step_threshold and not thrust_sat:
+        if t - self._last_alarm > QUIET_RESET_S:
+            self._threshold_scale = 1.0
+        if self._cusum[side] > self.s.step_threshold * self._threshold_scale and not thrust_sat:
             if not stepping:
+                if t - self._step_until < REARM_S:
+                    self._threshold_scale = min(2.0 * self._threshold_scale, MAX_THRESHOLD_SCALE)
+                self._last_alarm = t
                 self.steps += 1
                 dv, span = self._run[side]
                 if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
