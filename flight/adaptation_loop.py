@@ -22,6 +22,7 @@ from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.flight.adaptation import AdaptationEstimate, FastAdaptation, settings_from_controller
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
+from cfknode.flight.thrust_lag import ThrustLagBank
 
 GROUND_MARGIN = 0.1  # m above the floor: below, the ground carries part of the weight
 _RESET_STATES = ("IDLE", "PREFLIGHT", "LANDED", "EMERGENCY")
@@ -35,9 +36,12 @@ class LoopAdaptation:
         self._u = np.zeros(3)  # last command after the Mellinger layer's limits (model input space)
         self._r = np.zeros(3)  # the model's residual for it
         self._thrust = 0.0  # N, collective thrust sent for it
-        self._thrust_acting: float | None = None  # N, the sent thrust through the motors' lag: what acts now
-        lag = ctrl.adaptation_settings.thrust_lag_s
-        self._lag = vehicle.motor_time_constant if lag is None else lag
+        # The thrust acting now is the sent one through the motors' lag: configured, or (null) chosen in flight
+        # among the candidates and the vehicle's (flight/thrust_lag.py).
+        tuning = ctrl.adaptation_settings
+        fixed = tuning.thrust_lag_s is not None
+        self.lags = ThrustLagBank(() if fixed else tuning.thrust_lag_candidates_s,
+                                  tuning.thrust_lag_s if fixed else vehicle.motor_time_constant, ctrl.rate_hz)
         self._sat = (False, False)
         self._have_command = False
         self._version: int | None = None
@@ -57,6 +61,7 @@ class LoopAdaptation:
         """A tick not flown by the controller (blind, motors off): start over next time."""
         if self._have_command:
             self.layer.reset()
+            self.lags.forget_velocity()
         self._have_command = False
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
@@ -74,15 +79,21 @@ class LoopAdaptation:
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
         x = np.concatenate((est.p, est.v))
         u_flown = self.flown_acc(est.q)
+        if airborne:  # the lag bank learns from the same frames as the layer
+            self.lags.observe(float(est.v[2]), float(body_z(est.q)[2]), self.vehicle.mass * self.layer.estimate.thrust_scale,
+                              self.vehicle.gravity, float(self._r[2] + self.layer.estimate.offset[2]), pose_fresh,
+                              learn=not (self.layer.estimate.stepping or self._sat[0]))
+        else:
+            self.lags.forget_velocity()
         return self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
                                  u_commanded=self._u)
 
     def flown_acc(self, q: Any) -> np.ndarray:
         """The last command as flown: the sent thrust along the measured body z axis, over the estimated mass."""
-        w, x, y, z = (float(c) for c in q)
-        bz = np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+        bz = body_z(q)
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
-        thrust = self._thrust if self._thrust_acting is None else self._thrust_acting
+        acting = self.lags.acting()
+        thrust = self._thrust if acting is None else acting
         return thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
@@ -108,12 +119,8 @@ class LoopAdaptation:
         self._u, self._r = u, r
         self._thrust = thrust_cmd * self.vehicle.newton_per_cmd
         # The observer compares the vehicle with the thrust that acts, not the one just sent: without the motors'
-        # lag every thrust change looks like a disturbance for a few ticks, and a fast observer rings on it.
-        if self._thrust_acting is None or not self._have_command or self._lag <= 0.0:
-            self._thrust_acting = self._thrust
-        else:
-            self._thrust_acting += (1.0 - math.exp(-1.0 / (self.ctrl.rate_hz * self._lag))) * (
-                self._thrust - self._thrust_acting)
+        # lag every thrust change looks like a disturbance for a few ticks, and the observer rings on it.
+        self.lags.sent(self._thrust)
         self._sat = (shaped.thrust_saturated, shaped.tilt_saturated)
         self.saturated_ticks += int(shaped.thrust_saturated or shaped.tilt_saturated)
         self._have_command = True
@@ -135,10 +142,16 @@ class LoopAdaptation:
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {"adaptation": self.layer.s.mode, "adaptation_thrust_scale_end": round(e.thrust_scale, 4),
-                "adaptation_steps": self.layer.steps,
+                "adaptation_steps": self.layer.steps, "adaptation_thrust_lag_s": self.lags.lag_s,
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases}
 
 
-__all__ = ["GROUND_MARGIN", "LoopAdaptation"]
+def body_z(q: Any) -> np.ndarray:
+    """The body z axis in the world from a (w, x, y, z) quaternion."""
+    w, x, y, z = (float(c) for c in q)
+    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+
+
+__all__ = ["GROUND_MARGIN", "LoopAdaptation", "body_z"]

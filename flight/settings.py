@@ -23,7 +23,8 @@ class AdaptationTuning:
     axis_gain_bounds: tuple[float, float]
     stale_pose_s: float
     rebase_window_s: float
-    thrust_lag_s: float | None = None  # s, the motors' thrust lag the observer models; None: the vehicle's
+    thrust_lag_s: float | None = None  # s, the motors' thrust lag the observer models; None: chosen in flight
+    thrust_lag_candidates_s: tuple[float, ...] = (0.015, 0.04, 0.08, 0.15)  # s, with the vehicle's, when None
     step_threshold: float = 0.0  # vertical step detector's alarm level (noise-normalised CUSUM); 0 = off
     step_bandwidth_hz: float = 10.0  # vertical bandwidth for ``step_hold_s`` after an alarm
     step_thrust_rate: float = 400.0  # 1/s, thrust_rate for ``step_hold_s`` after an alarm

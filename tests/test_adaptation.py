@@ -62,7 +62,7 @@ def test_dob_step_estimates_a_constant_disturbance_without_differentiating() -> 
 def test_mass_step_moves_into_thrust_scale_and_wind_into_offset() -> None:
     layer = FastAdaptation(settings(), RATE, G)
     d = np.array([0.8, -0.4, 0.0])
-    simulate(layer, 1.5, 1.33, d, np.zeros(3))
+    simulate(layer, 3.0, 1.33, d, np.zeros(3))  # 2 Hz offset, 2 /s into the mass: settled in 3 s
     e = layer.estimate
     assert e.thrust_scale == pytest.approx(1.33, rel=0.02)
     assert np.allclose(e.offset[:2], d[:2], atol=0.05)
@@ -73,7 +73,7 @@ def test_offset_is_held_on_a_saturated_axis_while_the_mass_estimate_learns() -> 
     layer = FastAdaptation(settings(), RATE, G)
     simulate(layer, 0.5, 1.0, np.zeros(3), np.zeros(3))
     before = layer.estimate.offset.copy()
-    simulate(layer, 0.5, 1.4, np.array([0.0, 0.0, 0.0]), np.zeros(3), saturated=(True, True), t0=0.5)
+    simulate(layer, 1.5, 1.4, np.array([0.0, 0.0, 0.0]), np.zeros(3), saturated=(True, True), t0=0.5)
     e = layer.estimate
     assert e.saturated
     assert np.array_equal(e.offset, before)  # nothing integrated into what the MPC sees
@@ -99,7 +99,7 @@ def test_rebase_keeps_model_plus_layer_continuous_and_the_model_takes_over() -> 
     """The learner trains on a_meas - u as always; at a swap the layer keeps only what the new model misses."""
     layer = FastAdaptation(settings(), RATE, G)
     wind = np.array([1.0, 0.0, 0.0])
-    simulate(layer, 1.0, 1.0, wind, np.zeros(3))
+    simulate(layer, 3.0, 1.0, wind, np.zeros(3))  # 0.5 Hz horizontal: settled
     x, u, old = layer.recent()
     assert x.shape[0] == int(round(layer.s.rebase_window_s * RATE))
     total_before = old + layer.estimate.offset

@@ -89,3 +89,21 @@ def test_the_late_oracle_hears_the_true_mass_after_its_delay() -> None:
             mass["m"] = 1.33 * cfg.vehicle.mass
         scales.append(oracle.before_solve(t, None, True, "TRACK", None).thrust_scale)
     assert scales[10 + 7] == 1.0 and abs(scales[10 + 8] - 1.33) < 1e-9  # 20 ms = 8 ticks late
+
+
+def test_the_lag_bank_picks_the_motor_lag_that_explains_the_climb() -> None:
+    from cfknode.flight.thrust_lag import ThrustLagBank
+
+    rng = np.random.default_rng(3)
+    mass, dt = 0.03, 1.0 / RATE
+    bank = ThrustLagBank((0.015, 0.04, 0.08, 0.15), 0.015, RATE)
+    true_lag, acting, v = 0.08, mass * G, 0.0
+    for i in range(int(6.0 * RATE)):
+        sent = mass * G * (1.0 + 0.2 * np.sign(np.sin(2.0 * np.pi * 1.5 * i * dt)))  # a climbing and sinking square
+        bank.sent(sent)
+        acting += (1.0 - np.exp(-dt / true_lag)) * (sent - acting)
+        v += dt * (acting / mass - G)
+        fresh = i % FRAME_TICKS == 0
+        bank.observe(v + (0.005 * rng.standard_normal() if fresh else 0.0), 1.0, mass, G, 0.0, fresh)
+    assert bank.lag_s == 0.08
+    assert bank.switches >= 1

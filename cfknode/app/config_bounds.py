@@ -102,6 +102,7 @@ BOUNDS: dict[str, Bound] = {
     "controller.adaptation_settings.step_thrust_rate": _b(0, 1000, "1/s"),
     "controller.adaptation_settings.step_hold_s": _b(0, 5, "s"),
     "controller.adaptation_settings.oracle_delay_s": _b(0, 1, "s"),
+    "controller.adaptation_settings.thrust_lag_candidates_s": _b(0.001, 0.5, "s"),
     # Estimator.
     "estimator.process_accel_std": _b(0, 100, "m/s^2", open_low=True),
     "estimator.position_std": _b(1e-5, 0.1, "m"),  # the Kalman filter needs a noise > 0

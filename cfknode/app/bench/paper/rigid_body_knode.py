@@ -233,7 +233,7 @@ class RigidBodyQueue(nn.Module):
             net = queue.push()
             with torch.no_grad():
                 for t, a in ((net.l1.weight, w1), (net.l1.bias, b1), (net.l2.weight, w2), (net.l2.bias, b2)):
-                    t.copy_(torch.as_tensor(a, dtype=dtype))
+                    t.copy_(torch.tensor(a, dtype=dtype))  # a copy: weights from Ray's store are read-only
         return queue
 
 

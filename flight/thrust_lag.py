@@ -1,0 +1,85 @@
+"""Which motor lag the vehicle has: a bank of first-order thrust lags, the one that predicts the climb best wins.
+
+The fast adaptation layer compares the vehicle with the thrust that acts now, the thrust sent through the
+motors' lag. A lag wrong by 10x (a 150 ms motor where 15 ms was configured) makes every thrust change look
+like a disturbance, and the observer rings on it. So each candidate lag filters the sent thrust, predicts
+the vertical velocity change from one mocap frame to the next, and keeps a running mean square of its
+miss; the candidate with the smallest (by a margin, so the choice does not flicker) is the one used.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+SWITCH_MARGIN = 0.8  # a candidate takes over when its mean square miss is below this fraction of the current's
+MISS_FRAMES = 200  # mocap frames the mean square averages over (2 s at 100 Hz)
+
+
+class ThrustLagBank:
+    def __init__(self, lags_s: Sequence[float], configured_s: float, rate_hz: float) -> None:
+        lags = sorted({float(x) for x in lags_s} | {float(configured_s)})
+        self.lags = np.array(lags)
+        self._alpha = np.array([1.0 - math.exp(-1.0 / (rate_hz * x)) if x > 0.0 else 1.0 for x in lags])
+        self._dt = 1.0 / rate_hz
+        self.choice = int(lags.index(float(configured_s)))
+        self.switches = 0
+        self.reset()
+
+    def reset(self) -> None:
+        self._acting: np.ndarray | None = None  # N, each candidate's acting thrust
+        self._miss = np.zeros(len(self.lags))  # m/s, each candidate's unexplained velocity change this frame
+        self._ms = np.zeros(len(self.lags))  # (m/s)^2, running mean square of the frame misses
+        self._frames = 0
+        self._v_prev: float | None = None
+
+    @property
+    def lag_s(self) -> float:
+        return float(self.lags[self.choice])
+
+    def acting(self) -> float | None:
+        """N, the thrust acting now under the chosen lag (None before the first command)."""
+        return None if self._acting is None else float(self._acting[self.choice])
+
+    def sent(self, thrust: float) -> None:
+        """A command's thrust [N] was sent this tick."""
+        if self._acting is None:
+            self._acting = np.full(len(self.lags), thrust)
+        else:
+            self._acting += self._alpha * (thrust - self._acting)
+
+    def observe(self, v_z: float, bz_z: float, mass: float, gravity: float, other_z: float, fresh: bool,
+                learn: bool = True) -> None:
+        """One tick's vertical velocity; ``other_z`` is the rest of the predicted vertical acceleration (model
+        residual and disturbance estimate), common to every candidate. ``learn`` False (a step being tracked,
+        the thrust at its clamp): the frame is not scored, since the mass estimate itself is moving then."""
+        if self._acting is None:
+            return
+        if self._v_prev is not None:
+            predicted = self._dt * (self._acting * bz_z / mass - gravity + other_z)
+            self._miss += (v_z - self._v_prev) - predicted
+        self._v_prev = v_z
+        if not fresh:
+            return
+        if not learn:
+            self._miss[:] = 0.0
+            return
+        self._frames += 1
+        k = 1.0 / min(self._frames, MISS_FRAMES)
+        self._ms = (1.0 - k) * self._ms + k * self._miss * self._miss
+        self._miss[:] = 0.0
+        if self._frames >= MISS_FRAMES // 2:
+            best = int(np.argmin(self._ms))
+            if best != self.choice and self._ms[best] < SWITCH_MARGIN * self._ms[self.choice]:
+                self.choice = best
+                self.switches += 1
+
+    def forget_velocity(self) -> None:
+        """Blind or off the air: the next velocity starts a new frame chain."""
+        self._v_prev = None
+        self._miss[:] = 0.0
+
+
+__all__ = ["ThrustLagBank"]
