@@ -12,7 +12,6 @@ mocap is stale (inside ``FastAdaptation``); re-based when the model slot's versi
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np

@@ -28,6 +28,7 @@ from cfknode.kernel.setpoint import AttitudeSetpoint
 
 WAIT_S = 240.0  # generous: the machine is shared; the flights themselves take seconds
 NAMES = ("cf1", "cf2")
+EVENTS = [f"/{n}/events" for n in NAMES]  # every drone's
 
 
 class _Sup:
@@ -128,20 +129,12 @@ def _start(tmp_path: Path, *sets: str) -> subprocess.Popen[str]:
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_events(proc: subprocess.Popen[str], logs: Path, text: str) -> None:
-    wait_for_log_events(proc, logs, [f"/{n}/events" for n in NAMES], text, WAIT_S)
-
-
-def _finish(proc: subprocess.Popen[str]) -> tuple[int, dict, str]:
-    return finish_json(proc, WAIT_S)
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_stop_signal_in_flight_lands_every_drone(tmp_path, sig):
     proc = _start(tmp_path)
-    _wait_for_events(proc, tmp_path / "logs", "TAKEOFF -> TRACK")
+    wait_for_log_events(proc, tmp_path / "logs", EVENTS, "TAKEOFF -> TRACK", WAIT_S)
     proc.send_signal(sig)
-    code, result, err = _finish(proc)
+    code, result, err = finish_json(proc, WAIT_S)
     text = "SIGTERM" if sig is signal.SIGTERM else "SIGHUP (terminal closed)"
     assert code == 1, err  # landed safely, but the mission was cut short: as a single flight
     assert "Traceback" not in err
@@ -168,11 +161,11 @@ def test_a_stop_signal_in_flight_lands_every_drone(tmp_path, sig):
 def test_a_second_sigterm_stops_every_drone(tmp_path):
     # A slow landing from 1 m, so the second signal arrives while both are under way.
     proc = _start(tmp_path, "trajectory.height=1.0", "safety.land_speed=0.1")
-    _wait_for_events(proc, tmp_path / "logs", "TAKEOFF -> TRACK")
+    wait_for_log_events(proc, tmp_path / "logs", EVENTS, "TAKEOFF -> TRACK", WAIT_S)
     proc.send_signal(signal.SIGTERM)
-    _wait_for_events(proc, tmp_path / "logs", "TRACK -> LAND: SIGTERM")
+    wait_for_log_events(proc, tmp_path / "logs", EVENTS, "TRACK -> LAND: SIGTERM", WAIT_S)
     proc.send_signal(signal.SIGTERM)
-    code, result, err = _finish(proc)
+    code, result, err = finish_json(proc, WAIT_S)
     assert code == 1, err
     assert "Traceback" not in err
     for name in NAMES:

@@ -32,20 +32,12 @@ def _start(tmp_path: Path, *sets: str) -> subprocess.Popen[str]:
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_event(proc: subprocess.Popen[str], logs: Path, text: str) -> None:
-    wait_for_log_events(proc, logs, ["/events"], text, WAIT_S)
-
-
-def _finish(proc: subprocess.Popen[str]) -> tuple[int, dict, str]:
-    return finish_json(proc, WAIT_S)
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_stop_signal_in_flight_lands_and_hands_back(tmp_path, sig):
     proc = _start(tmp_path)
-    _wait_for_event(proc, tmp_path / "logs", "TAKEOFF -> TRACK")
+    wait_for_log_events(proc, tmp_path / "logs", ["/events"], "TAKEOFF -> TRACK", WAIT_S)
     proc.send_signal(sig)
-    code, summary, err = _finish(proc)
+    code, summary, err = finish_json(proc, WAIT_S)
     extra = summary["extra"]
     text = "SIGTERM" if sig is signal.SIGTERM else "SIGHUP (terminal closed)"
     assert code == 1, err  # landed safely, but the mission was cut short, as with Ctrl-C
@@ -64,11 +56,11 @@ def test_a_stop_signal_in_flight_lands_and_hands_back(tmp_path, sig):
 def test_a_second_sigterm_stops_the_motors(tmp_path):
     # A slow landing from 1 m, so the second signal arrives while it is under way.
     proc = _start(tmp_path, "trajectory.height=1.0", "safety.land_speed=0.1")
-    _wait_for_event(proc, tmp_path / "logs", "TAKEOFF -> TRACK")
+    wait_for_log_events(proc, tmp_path / "logs", ["/events"], "TAKEOFF -> TRACK", WAIT_S)
     proc.send_signal(signal.SIGTERM)
-    _wait_for_event(proc, tmp_path / "logs", "TRACK -> LAND: SIGTERM")
+    wait_for_log_events(proc, tmp_path / "logs", ["/events"], "TRACK -> LAND: SIGTERM", WAIT_S)
     proc.send_signal(signal.SIGTERM)
-    code, summary, err = _finish(proc)
+    code, summary, err = finish_json(proc, WAIT_S)
     extra = summary["extra"]
     assert code == 1, err
     assert extra["safety_state"] == "EMERGENCY" and extra["safety_cause"] == "sigterm_stop"

@@ -30,6 +30,7 @@ from cfknode.app.ui.frame import (
     _HEADER,
     _LABEL,
     _LEVEL_STYLES,
+    footer_line,
     _NA,
     _STATE_STYLES,
     _WARN,
@@ -232,12 +233,7 @@ def render_fleet_frame(status: FleetStatus, wall_now: float, key_error: str | No
     header: Line = [(" cfknode fleet ", _HEADER), (f" {status.title} " if status.title else "", _HEADER),
                     (f" t {status.t:7.2f} s ", _HEADER)]
     panels = [_worst_panel(status), _drones_panel(status), _fleet_events_panel(status)]
-    footer: Line = [(" Keys ", Style(reverse=True, bold=True)), (f"  {FLEET_KEY_HELP}", _LABEL)]
-    if key_error:
-        footer.append((f"  key handler failed: {key_error}", _BAD))
-    if status.poll_error:
-        footer.append((f"  {status.poll_error}", _WARN))
-    return DashboardFrame(header, panels, footer)
+    return DashboardFrame(header, panels, footer_line(FLEET_KEY_HELP, key_error, status.poll_error))
 
 
 def _worst(drones: Sequence[DroneStatus], value: Any) -> tuple[DroneStatus | None, float]:

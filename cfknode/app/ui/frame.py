@@ -172,12 +172,7 @@ def render_frame(status: FlightStatus, wall_now: float, key_error: str | None = 
         _link_panel(status),
         _events_panel(status),
     ]
-    footer: Line = [(" Keys ", Style(reverse=True, bold=True)), (f"  {KEY_HELP}", _LABEL)]
-    if key_error:
-        footer.append((f"  key handler failed: {key_error}", _BAD))
-    if status.poll_error:
-        footer.append((f"  {status.poll_error}", _WARN))
-    return DashboardFrame(header, panels, footer)
+    return DashboardFrame(header, panels, footer_line(KEY_HELP, key_error, status.poll_error))
 
 
 def _supervisor_panel(s: FlightStatus) -> _Panel:
@@ -265,3 +260,13 @@ def _events_panel(s: FlightStatus) -> _Panel:
         for e in list(s.events)[-4:]
     ]
     return _panel("Events", lines or [[("none", _NA)]], full_row=True, optional=True)
+
+
+def footer_line(key_help: str, key_error: str | None, poll_error: str | None) -> Line:
+    """The keys, then a failed key handler or a failed status poll (the view goes on)."""
+    footer: Line = [(" Keys ", Style(reverse=True, bold=True)), (f"  {key_help}", _LABEL)]
+    if key_error:
+        footer.append((f"  key handler failed: {key_error}", _BAD))
+    if poll_error:
+        footer.append((f"  {poll_error}", _WARN))
+    return footer
