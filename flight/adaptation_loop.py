@@ -77,19 +77,20 @@ class LoopAdaptation:
             return self.layer.estimate
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
         x = np.concatenate((est.p, est.v))
-        u_flown = self.flown_acc(est.q)
+        bz = body_z(est.q)
+        u_flown = self.flown_acc(bz)
         if airborne:  # the lag bank learns from the same frames as the layer
-            self.lags.observe(float(est.v[2]), float(body_z(est.q)[2]), self.vehicle.mass * self.layer.estimate.thrust_scale,
-                              self.vehicle.gravity, float(self._r[2] + self.layer.estimate.offset[2]), pose_fresh,
-                              learn=not (self.layer.estimate.stepping or self._sat[0]))
+            e = self.layer.estimate
+            self.lags.observe(float(est.v[2]), float(bz[2]), self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
+                              float(self._r[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
         else:
             self.lags.forget_velocity()
         return self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
                                  u_commanded=self._u)
 
-    def flown_acc(self, q: Any) -> np.ndarray:
-        """The last command as flown: the sent thrust along the measured body z axis, over the estimated mass."""
-        bz = body_z(q)
+    def flown_acc(self, bz: np.ndarray) -> np.ndarray:
+        """The last command as flown: the acting thrust along the measured body z axis ``bz``, over the estimated
+        mass."""
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
         acting = self.lags.acting()
         thrust = self._thrust if acting is None else acting
