@@ -148,8 +148,9 @@ def test_mpc_cone_puts_altitude_before_tilt_near_the_clamp() -> None:
     assert np.all(np.hypot(horiz, lift) <= 1.05 * G + 0.06)  # inside the cone (and its 0.05 sliver) at every stage
     assert horiz[0] < 0.2  # no tilt until the vertical is paid
     # Adaptation none: today's problem exactly (no rows, the per-axis box).
-    plain = build_qp_problem(load_config().controller, cfg.vehicle)
-    b = acceleration_bounds(load_config().controller, cfg.vehicle)
+    none = load_config(overrides={"controller.adaptation": "none"}).controller
+    plain = build_qp_problem(none, cfg.vehicle)
+    b = acceleration_bounds(none, cfg.vehicle)
     assert plain.rows is None and np.array_equal(plain.ubw[:3], b.upper) and np.array_equal(plain.lbw[:3], b.lower)
 
 

@@ -56,11 +56,13 @@ def train_offline_model(overrides: dict[str, Any], schedule: MassSchedule, out: 
 
 
 # What each compared controller adds to the cell's overrides (given the offline model's path).
+# The rows without the fast layer say so: the configured default has it on.
+_NO_LAYER = {"controller.adaptation": "none"}
 CONTROLLER_OVERRIDES: dict[str, Any] = {
-    "nominal": lambda model: {},
-    "offline": lambda model: {"controller.model": str(model)},
-    "geometric": lambda model: {"controller.kind": "geometric"},
-    "online": lambda model: {"online.enabled": True},
+    "nominal": lambda model: dict(_NO_LAYER),
+    "offline": lambda model: {"controller.model": str(model), **_NO_LAYER},
+    "geometric": lambda model: {"controller.kind": "geometric", **_NO_LAYER},
+    "online": lambda model: {"online.enabled": True, **_NO_LAYER},
     "dob": lambda model: {"controller.adaptation": "dob"},
     "online_dob": lambda model: {"online.enabled": True, "controller.adaptation": "dob"},
     "oracle": lambda model: {"controller.adaptation": "oracle"},  # a reference: the true mass every tick

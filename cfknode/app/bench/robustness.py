@@ -32,7 +32,7 @@ from cfknode.app.bench.mass_steps import PAPER_STEPS
 
 # label -> overrides. Add a row here (e.g. "oracle") and every cell flies it.
 CONTROLLERS: dict[str, dict[str, Any]] = {
-    "geometric": {"controller.kind": "geometric"},
+    "geometric": {"controller.kind": "geometric", "controller.adaptation": "none"},
     "mpc": {"controller.kind": "mpc", "controller.adaptation": "none"},
     "mpc+dob": {"controller.kind": "mpc", "controller.adaptation": "dob"},
     "online": {"online.enabled": True, "controller.adaptation": "none"},
