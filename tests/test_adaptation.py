@@ -227,8 +227,8 @@ def test_flight_at_thrust_to_weight_1_05_after_a_mass_step_stays_up(tmp_path: An
 
 def test_adaptation_none_flies_todays_numbers(tmp_path: Any) -> None:
     """With adaptation none the settings are not read: changing them changes nothing, to the last bit."""
-    a, msgs = _fly(tmp_path)
-    b, _ = _fly(tmp_path, **{"controller.adaptation_settings.bandwidth_hz": 1.0,
+    a, msgs = _fly(tmp_path, **{"controller.adaptation": "none"})
+    b, _ = _fly(tmp_path, **{"controller.adaptation": "none", "controller.adaptation_settings.bandwidth_hz": 1.0,
                              "controller.adaptation_settings.thrust_rate": 1.0})
     assert not msgs
     assert a.summary.mse == b.summary.mse and np.array_equal(a.record.p, b.record.p)
