@@ -29,6 +29,8 @@ from typing import Literal
 
 import numpy as np
 
+from cfknode.flight.step_fit import StepFit
+
 MODES = ("none", "l1", "dob")
 Mode = Literal["none", "l1", "dob"]
 
@@ -181,6 +183,8 @@ class FastAdaptation:
         self.resets = 0
         self.rebases = 0
         self.steps = 0  # vertical steps detected
+        self.fits = 0  # frames at which a step's mass was re-fitted
+        self._fit = StepFit(rate_hz)
         self.reset()
 
     def reset(self) -> None:
@@ -204,6 +208,11 @@ class FastAdaptation:
         self._jump = 0.0  # m/s^2 added to the vertical estimate at an alarm
         self._threshold_scale = 1.0
         self._last_alarm = -math.inf
+        self._fit.reset()
+        self._onset_hint: float | None = None  # s, the frame before the alarm's run began
+        self._fitted: tuple[float, float] | None = None  # (thrust scale, vertical offset) fitted to the step
+        self._frame_dt = 0.01  # s between mocap frames, learned
+        self._fitting = False  # heights are given: steps are fitted
         self.resets += 1
 
     def update(
@@ -228,11 +237,21 @@ class FastAdaptation:
         if stale or self._obs is None or dt <= 0.0:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement
             self._v_prev = None
+            self._fit.reset()
             self.estimate = replace(self.estimate, frozen=True, saturated=thrust_sat or tilt_sat)
             return self.estimate
 
+        self._fitting = self.s.mode == "dob" and self.s.step_threshold > 0.0 and x_meas is not None
+        if self._fitting:
+            scale = self.estimate.thrust_scale  # u_applied's thrust was divided by it: a_T is what the motors did
+            self._fit.tick(t, float(x_meas[2]), (float(u_applied[2]) + self.g) * scale,
+                           float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale, float(self._sigma[2]), pose_fresh)
         stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
-        omega = self.omega if not stepping else np.array([self.omega[0], self.omega[1], self.omega_step])
+        fit = self._refit(stepping, pose_fresh)
+        fast = stepping
+        if fit is not None:
+            self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
+        omega = self.omega if not fast else np.array([self.omega[0], self.omega[1], self.omega_step])
         if self.s.mode == "dob":
             if omega[2] != self._omega_z or self._jump:  # switch: rescale so that sigma continues (+ the jump)
                 self._sigma = self._sigma.copy()
@@ -253,7 +272,13 @@ class FastAdaptation:
         if np.any(bounded != new_sigma):
             self._shift_observer(bounded - new_sigma, omega)
         self._sigma = bounded
-        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega)
+        fitted_scale = None
+        if fit is not None:  # the fitted mass, or the one before the onset if the frames show no step; either
+            fitted_scale = fit[0]  # way the offset stays what it was before the onset
+            self._sigma[2] = fit[1]
+            if self.s.mode == "dob":
+                self._obs[2] = v_meas[2] - fit[1] / omega[2]
+        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, fast, omega, fitted_scale)
         self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
         return self.estimate
 
@@ -291,6 +316,8 @@ class FastAdaptation:
             if self._cusum[i] > 0.0:
                 self._run[i][0] += surprise
                 self._run[i][1] += t - self._t_frame if self._t_frame is not None else 0.0
+        if self._t_frame is not None:
+            self._frame_dt += 0.05 * (min(t - self._t_frame, 0.1) - self._frame_dt)
         self._t_frame = t
         side = 0 if self._cusum[0] >= self._cusum[1] else 1
         if t - self._last_alarm > QUIET_RESET_S:
@@ -304,14 +331,32 @@ class FastAdaptation:
                 dv, span = self._run[side]
                 if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
                     self._jump = dv / span
+                self._onset_hint = t - span
             self._step_until = t + self.s.step_hold_s
             self._cusum = (0.0, 0.0)
             self._run = [[0.0, 0.0], [0.0, 0.0]]
             return True
         return stepping
 
+    def _refit(self, stepping: bool, fresh: bool) -> tuple[float, float, bool] | None:
+        """While a step is tracked, refined each frame: (thrust scale, offset before the onset, significant)
+        fitted to the frames around the onset; None if they are too few to fit. Not significant: no step the
+        frames can tell (a false alarm), and the observer carries on as between steps."""
+        if not stepping or self._onset_hint is None or not self._fitting:  # no heights: the observer tracks it
+            self._fitted = None
+            return None
+        if fresh:
+            got = self._fit.estimate(self._onset_hint, self._frame_dt)
+            if got is not None:
+                theta, sigma0, significant = got
+                self._fitted = (float(np.clip(1.0 / theta, *self.s.thrust_scale_bounds)), sigma0, significant)
+                self.fits += int(significant)
+        if self._fitted is None:  # too few frames yet: the estimate holds still rather than guess
+            self._fitted = (self.estimate.thrust_scale, float(self._sigma[2]), False)
+        return self._fitted
+
     def _settle(self, u: np.ndarray, u_cmd: np.ndarray | None, thrust_sat: bool, tilt_sat: bool, dt: float,
-                stepping: bool = False, omega: np.ndarray | None = None) -> None:
+                stepping: bool = False, omega: np.ndarray | None = None, fitted_scale: float | None = None) -> None:
         """Move sigma into the thrust scale, update the axis gains, then publish the remaining offset (bounded)."""
         est, s = self.estimate, self.s
         scale, gain = est.thrust_scale, est.axis_gain.copy()
@@ -319,6 +364,8 @@ class FastAdaptation:
         # Moving held error into s is no integration: it changes no prediction (see sigma_after_transfer).
         rate = s.step_thrust_rate if stepping else s.thrust_rate
         new_scale = thrust_transfer(float(sigma[2]), float(u[2]), self.g, scale, rate, dt, s.thrust_scale_bounds)
+        if fitted_scale is not None:  # a fitted step sets the scale; sigma was pinned by the caller
+            new_scale = scale = fitted_scale
         new_gain = gain.copy()
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
             for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness

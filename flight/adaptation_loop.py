@@ -76,7 +76,7 @@ class LoopAdaptation:
         if not self._have_command:
             return self.layer.estimate
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
-        x = np.concatenate((est.p, est.v))
+        x = np.concatenate((measured_position(est), est.v))
         bz = body_z(est.q)
         u_flown = self.flown_acc(bz)
         if airborne:  # the lag bank learns from the same frames as the layer
@@ -146,6 +146,16 @@ class LoopAdaptation:
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases}
+
+
+def measured_position(est: Any) -> np.ndarray:
+    """The newest mocap frame's position carried to the estimate's time with the estimated velocity (the filter's
+    own position lags under a sudden acceleration, which would bias the step fit); the filter's without one."""
+    frame = getattr(est, "frame", None)
+    if frame is None:
+        return est.p
+    t_frame, p = frame
+    return p + (est.t - t_frame) * est.v
 
 
 def body_z(q: Any) -> np.ndarray:

@@ -42,6 +42,9 @@ class StateEstimate:
     v: np.ndarray
     q: np.ndarray
     yaw: float
+    # The newest mocap frame as measured (time with the latency taken off, position), unfiltered: the fast
+    # layer's step fit reads heights without the filter's lag. None where no frame fed the estimate.
+    frame: tuple[float, np.ndarray] | None = None
 
 
 class VelocityEstimator:
@@ -67,6 +70,7 @@ class VelocityEstimator:
         self._last_pose_t = -math.inf
         self._quat: np.ndarray | None = None
         self._yaw = 0.0
+        self._frame: tuple[float, np.ndarray] | None = None
         self._zero3 = np.zeros(3)
 
     @property
@@ -89,6 +93,7 @@ class VelocityEstimator:
         w, x, y, z = pose.quaternion
         self._yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
         t_m = pose.t - self._latency
+        self._frame = (t_m, np.array(pose.position, dtype=float))
         if self._n == 0:
             self._start(t_m, pose.position)
             return
@@ -171,7 +176,7 @@ class VelocityEstimator:
             # Called again at the same time (or the clock stepped back): no new row.
             p = self._p[last].copy()
             v = self._v[last].copy()
-        return StateEstimate(t=now, p=p, v=v, q=self._quat, yaw=self._yaw)
+        return StateEstimate(t=now, p=p, v=v, q=self._quat, yaw=self._yaw, frame=self._frame)
 
     def _start(self, t: float, position: np.ndarray) -> None:
         self._t[0] = t
