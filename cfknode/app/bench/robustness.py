@@ -5,6 +5,11 @@ The controllers keep believing ``vehicle:``; each cell changes what the simulato
 response, battery sag; mocap latency and noise; drag, wind, gusts; the paper's mass steps).
 Every cell is flown on two patterns: the lab circle (0.5 m at 0.4 m/s, shortened to 8 s of
 pattern instead of 30 s to keep the bench affordable) and the paper's r = 2 m, v = 0.8 m/s, 8 s circle.
+Both fly at ``PATTERN_HEIGHT`` (1.5 m), every cell and controller alike: the simulator has no
+ground effect or other dependence on altitude, so the height only decides whether a fall that
+can be stopped is stopped before the ground. The hardest cell (T/W 1.05 at the clamp after the
+1.33x step, 150 ms thrust lag) must lose 0.85 m even with the clamp commanded at the instant
+of the step (``thrust_sag.step_sag``); 1.5 m leaves that and ``SAG_MARGIN`` for the reaction.
 
 Per run: MSE on the pattern window, whether the vehicle hit the ground (z < 0.05 m during
 the pattern), diverged (the geofence fired), or the supervisor ended the flight otherwise
@@ -43,6 +48,12 @@ REFERENCES = ("oracle",)  # never counted as the lowest
 ADAPTIVE = ("mpc+dob", "online", "online+dob")  # must never hit the ground, diverge or trip the supervisor
 
 GROUND_Z = 0.05  # m: below this during the pattern is a ground hit
+# Every pattern flies this high: room for the worst cell's unavoidable sag plus SAG_MARGIN
+# (checked by tests), under the default 2.0 m geofence and a lab ceiling.
+PATTERN_HEIGHT = 1.5  # m
+SAG_MARGIN = 0.5  # m over the instant-reaction sag: ~35 ms of detection and command path at the worst cell
+CEILING = 3.0  # m: the bench's fence top, a lab ceiling
+CLIMB_S_PER_M = 2.0  # s of take-off (and landing) per metre of height: the climb rate the 1 m lab circle had
 HEAVIEST = max(f for _, f in PAPER_STEPS)
 TW_LAG = 0.150  # s, the thrust lag of the hardest thrust-to-weight cell
 SAG_PER_S = 0.01  # an accelerated sag (10 % per 10 s) so a short flight shows what a whole pack does
@@ -59,8 +70,8 @@ class Pattern:
     ramp: float
 
 
-LAB = Pattern("lab", 0.5, 0.4, 8.0, 1.0, 2.0)
-PAPER = Pattern("paper", 2.0, 0.8, 8.0, 1.5, 0.0)
+LAB = Pattern("lab", 0.5, 0.4, 8.0, PATTERN_HEIGHT, 2.0)
+PAPER = Pattern("paper", 2.0, 0.8, 8.0, PATTERN_HEIGHT, 0.0)
 
 
 @dataclass(frozen=True)
@@ -114,6 +125,7 @@ class RunResult:
     outcome: str
     recover_s: float | None  # longest recovery over the mass steps; inf = never; None = no steps
     wall_s: float
+    sag_m: float = math.nan  # largest altitude below the reference during the pattern (m)
 
     @property
     def failed(self) -> bool:
@@ -134,13 +146,14 @@ def flight_overrides(cell: Cell, pattern: Pattern, controller: str, log_dir: str
         "trajectory.duration": pattern.duration,
         "trajectory.height": pattern.height,
         "trajectory.ramp_duration": pattern.ramp,
-        # Shorter take-off, settle and landing than a flight's: the pattern is what is measured.
-        "trajectory.takeoff_duration": 2.0,
+        # Shorter settle than a flight's (the pattern is what is measured); take-off and landing
+        # at the lab circle's climb rate, whatever the height.
+        "trajectory.takeoff_duration": CLIMB_S_PER_M * pattern.height,
         "trajectory.settle_duration": 0.5,
-        "trajectory.land_duration": 2.0,
+        "trajectory.land_duration": CLIMB_S_PER_M * pattern.height,
         # A bench, not people: a wide fence and tracking limit let every controller show its error.
         "safety.fence_min": [-span, -span, -0.2],
-        "safety.fence_max": [span, span, pattern.height + 2.5],
+        "safety.fence_max": [span, span, max(CEILING, pattern.height + 0.5)],
         "safety.max_tracking_error": 3.0,
         "sim.seed": seed,
         "log.dir": log_dir,
@@ -157,6 +170,28 @@ def flight_overrides(cell: Cell, pattern: Pattern, controller: str, log_dir: str
     if cell.thrust_to_weight > 0.0:
         base["sim.thrust_map_scale"] = thrust_scale_for_thrust_to_weight(cell.thrust_to_weight, cfg.vehicle, HEAVIEST)
     return {**base, **CONTROLLERS[controller]}
+
+
+def unavoidable_sag(cell: Cell, reaction_s: float = 0.0) -> float:
+    """Altitude [m] the plant of ``cell`` must lose at its mass steps even with the thrust clamp
+    commanded ``reaction_s`` after each step (0 without steps): the thrust hovers the mass before
+    the step and follows through the plant's motor lag (``thrust_sag.step_sag``)."""
+    from cfknode.app.bench.thrust_sag import step_sag
+    from cfknode.app.config import load_config
+    from cfknode.sim_backend.plant import plant_motor_time_constant, thrust_to_weight
+
+    if not cell.mass_steps:
+        return 0.0
+    cfg = load_config(overrides=flight_overrides(cell, LAB, "mpc", tempfile.gettempdir(), 0))
+    tau = plant_motor_time_constant(cfg.vehicle, cfg.sim)
+    worst, before = 0.0, 1.0
+    for change in cfg.sim.mass_changes:
+        tw = thrust_to_weight(cfg.vehicle, cfg.sim.thrust_map_scale, change.factor)
+        if change.factor > before and tw <= 1.0:
+            return math.inf  # it cannot stop falling at all
+        worst = max(worst, step_sag(tw, before, change.factor, tau, reaction_s))
+        before = change.factor
+    return worst
 
 
 def recovery_time(t: np.ndarray, err: np.ndarray, t_step: float, t_end: float, hold: float = 0.5) -> float:
@@ -202,8 +237,9 @@ def run_one(cell: Cell, pattern: Pattern, controller: str, seed: int, log_dir: s
         err = np.linalg.norm(rec.p - rec.p_ref, axis=1)
         times = [c["t"] for c in overrides["sim.mass_changes"]] + [t1]
         recover = max(recovery_time(rec.t, err, a, b) for a, b in zip(times[:-1], times[1:]))
+    sag = float(np.max(rec.p_ref[in_pattern, 2] - rec.p[in_pattern, 2])) if in_pattern.any() else math.nan
     return RunResult(cell.name, pattern.name, controller, float(summary.mse), ground, diverged, tripped,
-                     outcome.message, recover, time.perf_counter() - start)
+                     outcome.message, recover, time.perf_counter() - start, sag)
 
 
 # --- report ------------------------------------------------------------------------------------
@@ -232,12 +268,14 @@ def wins(results: list[RunResult], controllers: tuple[str, ...]) -> dict[str, in
 
 def markdown(results: list[RunResult], controllers: tuple[str, ...], command: str, version: str, mode: str,
              patterns: tuple[Pattern, ...]) -> str:
-    pats = ", ".join(f"{p.name}: r = {p.radius:g} m at {p.speed:g} m/s, {p.duration:g} s of pattern" for p in patterns)
+    pats = ", ".join(f"{p.name}: r = {p.radius:g} m at {p.speed:g} m/s at {p.height:g} m, {p.duration:g} s of pattern"
+                     for p in patterns)
     lines = [
         "## Robustness: plants the controllers were not tuned on",
         "",
         f"`{command}`, cfknode {version}, mode {mode}. MSE in m^2 on the pattern (mean over the axes); "
-        f"patterns {pats}. Flags: G hit the ground (z < {GROUND_Z} m during the pattern), D diverged (geofence), "
+        f"patterns {pats} (every cell and controller at the same height: no ground effect in the simulator). "
+        f"Flags: G hit the ground (z < {GROUND_Z} m during the pattern), D diverged (geofence), "
         "S the supervisor ended the flight (not \"flight complete\"). Recovery: the longest time after a mass "
         "step until the error is back under its pre-step level for 0.5 s. Lowest MSE of each row in bold.",
         "",
@@ -373,5 +411,5 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
     return 0
 
 
-__all__ = ["ADAPTIVE", "CELLS", "CONTROLLERS", "Cell", "Pattern", "RunResult", "add_robustness_arguments", "markdown",
-           "recovery_time", "run_one", "run_robustness", "wins"]
+__all__ = ["ADAPTIVE", "CELLS", "CONTROLLERS", "Cell", "PATTERN_HEIGHT", "Pattern", "RunResult", "SAG_MARGIN",
+           "add_robustness_arguments", "markdown", "recovery_time", "run_one", "run_robustness", "unavoidable_sag", "wins"]
