@@ -16,9 +16,12 @@ the l1 filter chain adds lag for no gain here. "dob" is the method; "l1" stays f
 
 No single bandwidth serves both a noisy mocap and a payload step (6 Hz: 1.4e-3 m^2 on the lab circle
 with 2 mm of noise; 2 Hz: a 0.49 m sag at 1.33x mass). So the observer is slow between steps and a step
-detector switches it to ``step_bandwidth_hz`` for ``step_hold_s``: a CUSUM of the frame-to-frame vertical
-velocity surprise, normalised by its noise level learned in flight, with the run's unexplained
-acceleration added at the alarm (the detection delay is not lost). See docs/results.md#fast-adaptation.
+detector raises an alarm: a CUSUM of the frame-to-frame vertical velocity surprise, normalised by its noise
+level learned in flight. For ``step_hold_s`` after it the mass is fitted to the mocap heights around the
+onset (step_fit.py), which does not ring as the observer moving an additive estimate into the mass did
+(0.40-0.74 for a true 0.5); a fit that sees no step keeps the mass. Without heights the observer runs at
+``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm. See
+docs/results.md#fast-adaptation.
 """
 
 from __future__ import annotations
