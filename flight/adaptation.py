@@ -111,13 +111,12 @@ def l1_step(
 
 
 def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
-    """The published offset: ``sigma`` low-passed at ``omega`` (rad/s per axis; 0 passes sigma through).
+    """The published offset: ``sigma`` low-passed at ``omega`` (rad/s per axis; inf passes sigma through).
 
     The observer's sigma = omega (v - z) carries the velocity estimate's noise at gain omega, unfiltered: in
     quiet flight it is that noise (a 0.5 Hz horizontal sigma was 0.027 m/s^2 rms, 96 % of it above 5 Hz, with a
     0.999 correlation to omega times the velocity error). Behind this second pole it rolls off as 1/f."""
-    alpha = np.where(omega > 0.0, np.minimum(1.0, omega * dt), 1.0)
-    return out + alpha * (sigma - out)
+    return out + np.minimum(1.0, omega * dt) * (sigma - out)
 
 
 def shrink(offset: np.ndarray, band: float) -> np.ndarray:
@@ -205,9 +204,9 @@ class FastAdaptation:
         self.omega_step = 2.0 * math.pi * max(settings.step_bandwidth_hz, settings.bandwidth_hz)
         # The published offset's low-pass (dob): sigma = omega (v - z) passes the velocity estimate's noise
         # straight through at gain omega; a second pole makes that roll off (see smooth_step).
-        out_hz = (settings.output_bandwidth_xy_hz, settings.output_bandwidth_xy_hz, settings.output_bandwidth_hz)
-        self.omega_out = 2.0 * math.pi * np.array(out_hz) if settings.mode == "dob" else np.zeros(3)
-        self._omega_out_step = np.array([self.omega_out[0], self.omega_out[1], 0.0])
+        out_hz = np.array([settings.output_bandwidth_xy_hz, settings.output_bandwidth_xy_hz, settings.output_bandwidth_hz])
+        self.omega_out = np.where(out_hz > 0.0, 2.0 * math.pi * out_hz, math.inf)  # inf: sigma itself
+        self._omega_out_step = np.array([self.omega_out[0], self.omega_out[1], math.inf])
         n = max(1, int(round(settings.rebase_window_s * rate_hz)))
         self._buf_x = np.zeros((n, 6))
         self._buf_u = np.zeros((n, 3))
@@ -291,7 +290,7 @@ class FastAdaptation:
             self._shift_observer(bounded - new_sigma, omega)
         self._sigma = bounded
         if self.s.mode == "dob":  # a tracked step is published as fast as the observer learns it
-            self._out = smooth_step(self._out, bounded, self.omega_out if not stepping else self._omega_out_step, dt)
+            self._out = smooth_step(self._out, bounded, self._omega_out_step if stepping else self.omega_out, dt)
         else:
             self._out = bounded
         self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega)

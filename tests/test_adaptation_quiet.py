@@ -43,9 +43,9 @@ def hover(lay: FastAdaptation, seconds: float, d: np.ndarray, v_noise: float, se
     return out
 
 
-def test_smooth_step_passes_through_at_zero_and_low_passes_otherwise() -> None:
+def test_smooth_step_passes_through_at_infinity_and_low_passes_otherwise() -> None:
     out, sigma = np.zeros(3), np.array([1.0, -2.0, 0.5])
-    assert np.array_equal(smooth_step(out, sigma, np.zeros(3), 0.0025), sigma)
+    assert np.array_equal(smooth_step(out, sigma, np.full(3, np.inf), 0.0025), sigma)
     once = smooth_step(out, sigma, np.full(3, 2 * np.pi), 0.0025)
     assert np.allclose(once, sigma * 2 * np.pi * 0.0025)
 
