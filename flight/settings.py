@@ -32,7 +32,7 @@ class AdaptationTuning:
     oracle_delay_s: float = 0.0  # s, adaptation "oracle" only: the true mass is told this late
     output_bandwidth_hz: float = 0.0  # dob: the vertical offset is the estimate low-passed again at this cut-off; 0 off
     output_bandwidth_xy_hz: float = 0.0  # the same for x and y
-    offset_deadband: float = 0.0  # m/s^2: a published offset well below it is shrunk toward 0; 0 off
+    offset_deadband: float = 0.0  # m/s^2: a horizontal offset well below it is shrunk toward 0; 0 off
 
 
 @dataclass(frozen=True)
