@@ -95,3 +95,11 @@ def test_quiet_hover_flight_offset_is_small(tmp_path: Any) -> None:
     msgs = read_log(res.summary.log_path).topic("/adaptation")
     hovering = np.array([m["offset"] for m in msgs if 3.0 <= m["t"] <= 5.0])
     assert np.sqrt((hovering[:, :2] ** 2).mean()) < 0.005  # raw sigma: ~0.03 m/s^2 of velocity noise
+
+
+def test_only_the_horizontal_offset_is_shrunk() -> None:
+    """A small vertical error stays (the mass transfer keeps it small; a ramp must not lag behind a shrink)."""
+    lay = layer(thrust_rate=0.0)
+    offsets = hover(lay, 5.0, np.array([0.006, 0.0, 0.006]), 0.0)
+    assert abs(offsets[-1, 0]) < 0.001  # well under the 0.02 m/s^2 band: not applied
+    assert offsets[-1, 2] == pytest.approx(0.006, abs=5e-4)
