@@ -30,6 +30,9 @@ class AdaptationTuning:
     step_thrust_rate: float = 400.0  # 1/s, thrust_rate for ``step_hold_s`` after an alarm
     step_hold_s: float = 0.3  # s the fast estimate lasts after an alarm
     oracle_delay_s: float = 0.0  # s, adaptation "oracle" only: the true mass is told this late
+    output_bandwidth_hz: float = 0.0  # dob: the vertical offset is the estimate low-passed again at this cut-off; 0 off
+    output_bandwidth_xy_hz: float = 0.0  # the same for x and y
+    offset_deadband: float = 0.0  # m/s^2: a horizontal offset well below it is shrunk toward 0; 0 off
 
 
 @dataclass(frozen=True)

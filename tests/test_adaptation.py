@@ -105,7 +105,8 @@ def test_rebase_keeps_model_plus_layer_continuous_and_the_model_takes_over() -> 
     total_before = old + layer.estimate.offset
     new = old + np.array([0.7, 0.0, 0.0])  # the new model explains 0.7 of the 1.0 m/s^2
     layer.rebase(new)
-    assert np.allclose(new + layer.estimate.offset, total_before, atol=1e-9)
+    # Continuous up to the significance shrink's bias (band^2 / |offset|: 1.3e-3 at 0.3 m/s^2).
+    assert np.allclose(new + layer.estimate.offset, total_before, atol=2e-3)
     assert layer.estimate.offset[0] == pytest.approx(0.3, abs=0.03)
     assert np.array_equal(rebase_offset(np.ones(3), old, np.full_like(old, np.nan), 5.0), np.ones(3))
 

@@ -102,6 +102,9 @@ BOUNDS: dict[str, Bound] = {
     "controller.adaptation_settings.step_thrust_rate": _b(0, 1000, "1/s"),
     "controller.adaptation_settings.step_hold_s": _b(0, 5, "s"),
     "controller.adaptation_settings.oracle_delay_s": _b(0, 1, "s"),
+    "controller.adaptation_settings.output_bandwidth_hz": _b(0, 50, "Hz"),
+    "controller.adaptation_settings.output_bandwidth_xy_hz": _b(0, 50, "Hz"),
+    "controller.adaptation_settings.offset_deadband": _b(0, 5, "m/s^2"),
     "controller.adaptation_settings.thrust_lag_candidates_s": _b(0.001, 0.5, "s"),
     # Estimator.
     "estimator.process_accel_std": _b(0, 100, "m/s^2", open_low=True),
