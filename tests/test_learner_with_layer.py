@@ -20,11 +20,10 @@ alone needs a window, a training round and the gate after each step, the layer s
 ~40 ms. The learner on top of the layer does not reliably win over the layer alone (1.18x better
 on seed 0, 1.05-2.7x worse on seeds 1-4): after a mass step the layer already holds the whole
 error, and the learner's models seem to add more noise than they remove. Nor does it where the
-learner alone is the better one:
-with linear drag (0.05 N/(m/s) in x, y) on a 0.3 m circle at 1 m/s the learner alone flew 7.9e-4
-and 8.3e-4 (seeds 0, 1), the layer 2.4e-3 twice, and the two together 2.4e-3 and 2.3e-3. That half
-of the acceptance claim is recorded as an expected failure on seed 2, strict, so the suite says so
-the day it holds.
+learner alone is the better one: with linear drag (0.05 N/(m/s) in x, y) on a 0.3 m circle at
+1 m/s the learner alone flew 7.9e-4 and 8.3e-4 (seeds 0, 1), the layer 2.4e-3 twice, and the two
+together 2.4e-3 and 2.3e-3. That half of the acceptance claim is recorded as an expected failure on
+seed 2, strict, so the suite says so the day it holds.
 """
 
 from __future__ import annotations
