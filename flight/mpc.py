@@ -33,7 +33,7 @@ Input bounds (a box on u, from the vehicle):
   can produce at the tilt limit.  Per axis, so the joint tilt may exceed it at a
   corner; the Mellinger layer, which owns the attitude, clamps the final tilt.
 
-With fast adaptation on (``controller.adaptation`` not none) the box becomes the thrust cone the
+With fast adaptation on (``controller.adaptation`` not none) and the rti solver the box becomes the thrust cone the
 vehicle really has, as per-stage linear rows whose bounds are parameters (no rebuild when the
 mass estimate moves): u_z <= f_max - g, where f_max is the specific thrust at the clamp for the
 estimated mass, and an octagon inscribed in the circle |u_xy| <= h_k, h_k = min(tan(tilt)(g + u_z),
@@ -142,8 +142,6 @@ class TranslationalMpc:
             other = "osqp" if ctrl.qp_solver == "qrqp" else "qrqp"
             self._rescue_buf, self._rescue_eval = _bind(build_rti_step(self.problem, other, "rescue"), args, results)
         elif ctrl.solver == "ipopt":
-            if self.cone:
-                raise ValueError("the thrust cone (controller.adaptation) needs controller.solver rti")
             self.function = build_ipopt_solver(self.problem)
             self.backend = "ipopt"
             self._lbg = np.zeros(ng)

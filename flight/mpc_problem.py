@@ -147,7 +147,9 @@ _BIG = 1e3  # m/s^2: an inactive bound that stays finite (the KKT check multipli
 
 
 def cone_enabled(ctrl: ControllerConfig) -> bool:
-    return getattr(ctrl, "adaptation", "none") != "none"
+    """The thrust cone is part of the real-time (rti) problem; the converged ipopt reference keeps the box (the
+    Mellinger layer still puts altitude before tilt when a command exceeds the thrust left)."""
+    return getattr(ctrl, "adaptation", "none") != "none" and getattr(ctrl, "solver", "rti") == "rti"
 
 
 def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProblem:

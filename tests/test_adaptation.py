@@ -233,3 +233,12 @@ def test_adaptation_none_flies_todays_numbers(tmp_path: Any) -> None:
                              "controller.adaptation_settings.thrust_rate": 1.0})
     assert not msgs
     assert a.summary.mse == b.summary.mse and np.array_equal(a.record.p, b.record.p)
+
+
+def test_the_ipopt_reference_flies_the_layer_with_the_box() -> None:
+    """The fast layer is on by default; the converged ipopt MPC has no thrust cone and keeps its box."""
+    cfg = load_config(overrides={"controller.adaptation": "dob", "controller.solver": "ipopt", "controller.codegen": False})
+    mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
+    assert not mpc.cone and mpc.backend == "ipopt"
+    mpc.set_thrust_limit(1.05 * G)  # a no-op without the cone
+    assert mpc.solve(np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0]), _hover_ref(mpc.horizon)).ok
