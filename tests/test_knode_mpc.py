@@ -10,6 +10,7 @@ from cfknode.app.mission import run_flight
 torch = pytest.importorskip("torch")
 
 HEAVY = {
+    "controller.adaptation": "none",  # the learned model alone against the nominal one, as the paper flies them
     "sim.mass_changes": [{"t": 0.0, "factor": 1.3}],
     "trajectory.duration": 6.0,
     "trajectory.takeoff_duration": 2.0,
