@@ -262,7 +262,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 rec.ticks += 1
                 try:
                     _log_tick(log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
-                              status if source == "fallback" else "")
+                              status if source == "fallback" else "", fresh, sup.state.value)
                 except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
                     fault("the flight log (tick messages)", exc, ERROR_RECORD)
                 model = controller.model
@@ -306,9 +306,14 @@ def _log_tick(
     missed: bool,
     ok: bool,
     status: str = "",
+    fresh: bool = True,
+    phase: str = "",
 ) -> None:
     if est is not None:
-        state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q}
+        # fresh, phase and the newest frame are what the fast layer read this tick: replay feeds them back.
+        state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q, "fresh": bool(fresh), "phase": phase}
+        if est.frame is not None:
+            state["frame_t"], state["frame_p"] = est.frame
         if truth is not None:
             state["p_true"] = truth[:3]
             state["v_true"] = truth[3:6]

@@ -27,7 +27,8 @@ class Ref:
 
 
 def _cfg(**overrides: object):
-    base = {"controller.codegen": False}
+    # The MPC's own problem (the per-axis box); the thrust cone of the fast layer is tested in test_adaptation.py.
+    base = {"controller.codegen": False, "controller.adaptation": "none"}
     base.update({f"controller.{k}": v for k, v in overrides.items()})
     return load_config(overrides=base)
 
@@ -283,7 +284,8 @@ def test_failed_qp_gives_not_ok(monkeypatch):
 
 
 def test_codegen_compiles_once_and_is_reused(tmp_path):
-    c = load_config(overrides={"controller.codegen": True, "controller.horizon": 4})  # small N: fast gcc
+    c = load_config(overrides={"controller.codegen": True, "controller.horizon": 4,  # small N: fast gcc
+                               "controller.adaptation": "none"})
     first = TranslationalMpc(c.controller, c.vehicle, cache_dir=tmp_path)
     assert first.backend == "rti-qrqp-codegen"
     assert first.compiled is not None and first.compiled.compiled_now

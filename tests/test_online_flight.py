@@ -28,6 +28,7 @@ SHORT = {
     "trajectory.ramp_duration": 0.5,
     "sim.mass_changes": [{"t": 3.0, "factor": 1.3}],
     "online.enabled": True,
+    "controller.adaptation": "none",  # the paper's method: the learner alone (with the layer: test_learner_with_layer.py)
 }
 
 

@@ -28,6 +28,15 @@ def flight_log(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def plain_log(tmp_path_factory):
+    """A flight without the fast layer: replayed with another model, the layer (on by default) would re-estimate
+    what the new model changes from states the new commands never flew, and take it out."""
+    cfg = load_config(overrides={**SHORT, "controller.adaptation": "none",
+                                 "log.dir": str(tmp_path_factory.mktemp("plain"))})
+    return read_log(run_flight(cfg, name_hint="replay-plain").summary.log_path)
+
+
+@pytest.fixture(scope="module")
 def replayed(flight_log):
     cfg, dropped = logged_config(flight_log)
     assert dropped == []
@@ -52,14 +61,16 @@ def test_replay_reproduces_the_logged_commands(flight_log, replayed):
     np.testing.assert_array_equal(replayed.logged[:, :3], flight_log.array("/command", "acc")[mpc_ticks])
 
 
-def test_a_zero_model_changes_nothing_and_a_constant_residual_is_compensated(flight_log, tmp_path):
-    cfg, _ = logged_config(flight_log)
+def test_a_zero_model_changes_nothing_and_a_constant_residual_is_compensated(flight_log, plain_log, tmp_path):
     zero, name = load_residual_model(constant_model(tmp_path / "zero.safetensors", (0.0, 0.0, 0.0)))
     assert "1 network" in name
-    assert max(replay_log(flight_log, cfg, zero).max_abs().values()) == 0.0
+    for log in (flight_log, plain_log):  # with the fast layer (the default) and without
+        cfg, _ = logged_config(log)
+        assert max(replay_log(log, cfg, zero).max_abs().values()) == 0.0
     # A model predicting +0.5 m/s^2 upward: the MPC asks that much less acceleration (mid-flight).
     up, _ = load_residual_model(constant_model(tmp_path / "up.safetensors", (0.0, 0.0, 0.5)))
-    result = replay_log(flight_log, cfg, up)
+    cfg, _ = logged_config(plain_log)
+    result = replay_log(plain_log, cfg, up)
     mid = (result.t > 0.8) & (result.t < 3.0)
     assert np.mean(result.difference[mid, 2]) == pytest.approx(-0.5, abs=0.05)
     assert np.max(np.abs(result.difference[mid, :2])) < 0.05

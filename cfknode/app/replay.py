@@ -59,6 +59,8 @@ class _LoggedState:
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
+    t: float = 0.0
+    frame: tuple[float, np.ndarray] | None = None  # the newest mocap frame the fast layer read (logs that have it)
 
 
 class ResidualModel(Protocol):
@@ -147,6 +149,11 @@ def replay_log(
 ) -> ReplayResult:
     """Run ``cfg``'s controller on every controller tick of ``log``; see the module docstring.
 
+    The fast layer (``controller.adaptation``) is fed what it read in flight (fresh frames, the supervisor's
+    phase, the newest frame), so a flight replays exactly. Replayed with another model, the layer re-estimates
+    from states those commands never flew and takes out part of what the model changes: compare models on a
+    flight flown with ``controller.adaptation: none``, or replay with ``--set controller.adaptation=none``.
+
     ``trajectory``: the reference flown (default: rebuilt from ``cfg``; a fleet drone's is its own).
     """
     from cfknode.flight.controller import Controller
@@ -179,15 +186,21 @@ def replay_log(
         state = states.get(t)
         if source not in CONTROLLER_SOURCES or state is None:
             skipped[source or "unknown"] = skipped.get(source or "unknown", 0) + 1
+            if source == "blind":  # what the flight did to the controller on such ticks
+                controller.reset()
+            elif source != "stop":
+                controller.idle()
             continue
+        frame = (float(state["frame_t"]), np.asarray(state["frame_p"], dtype=float)) if "frame_t" in state else None
         est = _LoggedState(np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float),
-                           np.asarray(state["q"], dtype=float))
+                           np.asarray(state["q"], dtype=float), t, frame)
         ref = trajectory.sample(controller.preview_times(t))
         if t in refs:
             mismatch = max(mismatch, float(np.max(np.abs(ref.p[0] - np.asarray(refs[t]["p"], dtype=float)))))
         # A tick that fell back in flight while the replayed solve succeeds missed its deadline
         # on the wall clock: it is flown as the flight flew it (geometric).
-        command = controller.step(t, est, ref, force_fallback=source == "fallback")
+        command = controller.step(t, est, ref, force_fallback=source == "fallback",
+                                  pose_fresh=bool(state.get("fresh", True)), phase=str(state.get("phase") or "TRACK"))
         followed += source == "fallback" and command.status == "deadline"
         acc, sp = command.acc, command.setpoint
         rows_t.append(t)
