@@ -99,7 +99,10 @@ CHANNELS: tuple[ChannelSpec, ...] = (
         {"p": _vec(3, "position, world, m"), "v": _vec(3, "velocity, world, m/s"),
          "q": _vec(4, "attitude quaternion body->world, w x y z")},
         {"p_true": _vec(3, "simulator: true position, m"), "v_true": _vec(3, "simulator: true velocity, m/s"),
-         "q_true": _vec(4, "simulator: true attitude, w x y z")},
+         "q_true": _vec(4, "simulator: true attitude, w x y z"),
+         "fresh": _bool("a new mocap frame arrived this tick"), "phase": _str("the supervisor's state this tick"),
+         "frame_t": _num("the newest mocap frame's time, latency taken off, s"),
+         "frame_p": _vec(3, "the newest mocap frame's position, unfiltered, m")},
     ),
     ChannelSpec(
         "/reference", "cfknode.Reference", "Reference at the tick time.",
