@@ -250,7 +250,7 @@ class FastAdaptation:
         self._last_alarm = -math.inf
         self._fit.reset()
         self._onset_hint: float | None = None  # s, the frame before the alarm's run began
-        self._fitted: tuple[float, float] | None = None  # (thrust scale, vertical offset) fitted to the step
+        self._fitted: tuple[float, float, bool] | None = None  # (thrust scale, vertical offset, significant)
         self._frame_dt = 0.01  # s between mocap frames, learned
         self._fitting = False  # heights are given: steps are fitted
         self.resets += 1
@@ -288,10 +288,9 @@ class FastAdaptation:
                            float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale, float(self._out[2]), pose_fresh)
         stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
         fit = self._refit(stepping, pose_fresh)
-        fast = stepping
         if fit is not None:
             self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
-        omega = self.omega if not fast else np.array([self.omega[0], self.omega[1], self.omega_step])
+        omega = self.omega if not stepping else np.array([self.omega[0], self.omega[1], self.omega_step])
         if self.s.mode == "dob":
             if omega[2] != self._omega_z or self._jump:  # switch: rescale so that sigma continues (+ the jump)
                 self._sigma = self._sigma.copy()
@@ -322,7 +321,7 @@ class FastAdaptation:
             self._sigma[2] = self._out[2] = fit[1]
             if self.s.mode == "dob":
                 self._obs[2] = v_meas[2] - fit[1] / omega[2]
-        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, fast, omega, fitted_scale)
+        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
         self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
         return self.estimate
 
@@ -383,9 +382,9 @@ class FastAdaptation:
         return stepping
 
     def _refit(self, stepping: bool, fresh: bool) -> tuple[float, float, bool] | None:
-        """While a step is tracked, refined each frame: (thrust scale, offset before the onset, significant)
-        fitted to the frames around the onset; None if they are too few to fit. Not significant: no step the
-        frames can tell (a false alarm), and the observer carries on as between steps."""
+        """While a step is tracked with heights, refined each frame: (thrust scale, offset before the onset,
+        significant) fitted to the frames around the onset. Not significant (a false alarm), or too few frames
+        yet: the scale and offset of before the onset, held. None without heights: the observer tracks it."""
         if not stepping or self._onset_hint is None or not self._fitting:  # no heights: the observer tracks it
             self._fitted = None
             return None
@@ -407,9 +406,11 @@ class FastAdaptation:
         sigma = self._sigma
         # Moving held error into s is no integration: it changes no prediction (see sigma_after_transfer).
         rate = s.step_thrust_rate if stepping else s.thrust_rate
-        new_scale = thrust_transfer(float(self._out[2]), float(u[2]), self.g, scale, rate, dt, s.thrust_scale_bounds)
         if fitted_scale is not None:  # a fitted step sets the scale; sigma was pinned by the caller
             new_scale = scale = fitted_scale
+        else:
+            new_scale = thrust_transfer(float(self._out[2]), float(u[2]), self.g, scale, rate, dt,
+                                        s.thrust_scale_bounds)
         new_gain = gain.copy()
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
             for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness

@@ -11,8 +11,8 @@ the acting thrust along the body axis over the nominal mass (known, whatever the
 
 where ``known`` is the double integral of the old prediction and D the double integral of a_T from the onset
 t0 (zero before it). The frames before the onset pin z0 and v0; every frame after it adds to dtheta. The
-onset is taken among a few frames around the detector's run start, the one that fits best. Pure numpy on a
-ring of recent ticks; nothing here feeds back, so nothing rings.
+onset is searched tick by tick near the detector's run start, the one that fits best. Pure numpy on a ring
+of recent ticks; nothing here feeds back, so nothing rings.
 """
 
 from __future__ import annotations
@@ -48,8 +48,7 @@ def fit_step(t: np.ndarray, z: np.ndarray, known: np.ndarray, drive: np.ndarray)
 class StepFit:
     """Recent ticks and the integrals the fit needs; ``estimate`` fits a step whose onset is near a time."""
 
-    def __init__(self, rate_hz: float, window_s: float = 0.6, thrust_delay_s: float = 0.0) -> None:
-        self.dt = 1.0 / rate_hz
+    def __init__(self, rate_hz: float, window_s: float = 0.6) -> None:
         self.n = max(8, int(round(window_s * rate_hz)))
         self._t = np.zeros(self.n)
         self._z = np.zeros(self.n)
@@ -59,7 +58,6 @@ class StepFit:
         self._pr = np.zeros(self.n)  # double integral of the rest of the prediction (-g + model residual)
         self._theta = np.zeros(self.n)  # the layer's 1 / thrust scale at the tick
         self._sigma = np.zeros(self.n)  # the layer's vertical offset at the tick
-        self._delay = max(0, int(round(thrust_delay_s * rate_hz)))
         self.reset()
 
     def reset(self) -> None:
@@ -67,7 +65,6 @@ class StepFit:
         self._len = 0
         self._acc: tuple[float, float] | None = None  # (a_T, a_rest) of the last tick, integrated on the next
         self._vt_run = self._pt_run = self._vr_run = self._pr_run = 0.0
-        self._sent: list[float] = []  # the last ticks' a_T, oldest first: the radio holds a command a while
 
     def tick(self, t: float, z: float, a_thrust: float, a_rest: float, theta: float, sigma: float,
              fresh: bool) -> None:
@@ -85,10 +82,7 @@ class StepFit:
         self._t[i], self._z[i], self._fresh[i] = t, z, fresh
         self._pt[i], self._vt[i], self._pr[i] = self._pt_run, self._vt_run, self._pr_run
         self._theta[i], self._sigma[i] = theta, sigma
-        self._sent.append(a_thrust)
-        if len(self._sent) > self._delay + 1:
-            self._sent.pop(0)
-        self._acc = (self._sent[0], a_rest)
+        self._acc = (a_thrust, a_rest)
         self._i = (i + 1) % self.n
         self._len = min(self._len + 1, self.n)
 
