@@ -111,5 +111,9 @@ def test_realtime_flight_on_the_wall_clock(tmp_path):
     s = res.summary
     # Wall time is at least the simulated time: the loop really waited for the clock.
     assert s.wall_time_s >= s.duration_s - 0.05
-    assert s.ticks > 0.8 * 400 * s.duration_s
+    # Ticks sit on the 400 Hz grid, and a late one is skipped rather than queued, so how many
+    # run depends on the machine's load; that the loop keeps its slots does not.
+    t = np.asarray(res.record.t)
+    assert np.all(np.diff(np.floor(t / 0.0025 + 1e-6)) >= 1)  # each 2.5 ms slot at most once
+    assert s.ticks > 0.25 * 400 * s.duration_s  # a stalled loop, not a busy machine
     assert s.max_error < 0.05
