@@ -253,16 +253,20 @@ class FastAdaptation:
         self._fitted: tuple[float, float, bool] | None = None  # (thrust scale, vertical offset, significant)
         self._frame_dt = 0.01  # s between mocap frames, learned
         self._fitting = False  # heights are given: steps are fitted
+        self.fit_lag: int | None = None  # the motor lag (an index of ``thrust_by_lag``) the last significant fit chose
         self.resets += 1
 
     def update(
         self, t: float, v_meas: np.ndarray, x_meas: np.ndarray | None, u_applied: np.ndarray, model_acc: np.ndarray,
         saturated: tuple[bool, bool] = (False, False), pose_fresh: bool = True, u_commanded: np.ndarray | None = None,
+        thrust_by_lag: np.ndarray | None = None, lag: int = 0,
     ) -> AdaptationEstimate:
         """One tick. ``u_applied`` / ``model_acc`` are the previous tick's command as the vehicle flew it (sent
         thrust along the measured body axis, in the model's input space) and the model's acceleration for it;
         ``saturated`` is (thrust at the clamp, tilt limited) for that command; ``u_commanded`` is what the
-        Mellinger layer was asked for (after its limits), for the axis gains. Returns the estimate for this tick."""
+        Mellinger layer was asked for (after its limits), for the axis gains. ``thrust_by_lag``: the acting
+        thrust's vertical acceleration over the nominal mass under each candidate motor lag, ``lag`` the one
+        ``u_applied`` used (a step's fit then tells the lag too: ``fit_lag``). Returns the estimate for this tick."""
         if not self.s.enabled:
             return self.estimate
         if not (np.all(np.isfinite(v_meas)) and np.all(np.isfinite(u_applied)) and np.all(np.isfinite(model_acc))):
@@ -284,8 +288,9 @@ class FastAdaptation:
         self._fitting = self.s.mode == "dob" and self.s.step_threshold > 0.0 and x_meas is not None
         if self._fitting:
             scale = self.estimate.thrust_scale  # u_applied's thrust was divided by it: a_T is what the motors did
-            self._fit.tick(t, float(x_meas[2]), (float(u_applied[2]) + self.g) * scale,
-                           float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale, float(self._out[2]), pose_fresh)
+            a_thrust = (float(u_applied[2]) + self.g) * scale if thrust_by_lag is None else thrust_by_lag
+            self._fit.tick(t, float(x_meas[2]), a_thrust, float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale,
+                           float(self._out[2]), pose_fresh, lag)
         stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
@@ -391,9 +396,9 @@ class FastAdaptation:
         if fresh:
             got = self._fit.estimate(self._onset_hint, self._frame_dt)
             if got is not None:
-                theta, sigma0, significant = got
-                self._fitted = (float(np.clip(1.0 / theta, *self.s.thrust_scale_bounds)), sigma0, significant)
-                self.fits += int(significant)
+                self._fitted = (float(np.clip(1.0 / got.theta, *self.s.thrust_scale_bounds)), got.sigma, got.significant)
+                self.fits += int(got.significant)
+                self.fit_lag = got.lag if got.significant else None
         if self._fitted is None:  # too few frames yet: the estimate holds still rather than guess
             self._fitted = (self.estimate.thrust_scale, float(self._sigma[2]), False)
         return self._fitted

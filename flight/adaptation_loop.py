@@ -85,8 +85,13 @@ class LoopAdaptation:
                               float(self._r[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
         else:
             self.lags.forget_velocity()
-        return self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
-                                 u_commanded=self._u)
+        acting = self.lags.acting_all()
+        by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
+        estimate = self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
+                                     u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice)
+        if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
+            self.lags.choose(self.layer.fit_lag)
+        return estimate
 
     def flown_acc(self, bz: np.ndarray) -> np.ndarray:
         """The last command as flown: the acting thrust along the measured body z axis ``bz``, over the estimated

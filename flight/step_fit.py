@@ -18,6 +18,7 @@ of recent ticks; nothing here feeds back, so nothing rings.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,100 +28,136 @@ MIN_DRIVE = 1e-5  # m: the thrust's double integral since the onset below this c
 SIGNIFICANCE = 4.0  # standard errors a fitted change must exceed; below it the old mass stands (a false alarm
                     # then changes nothing, so the detector can be sensitive)
 NOISE_FLOOR = 1e-4  # m: residual noise assumed at least this (mocap sub-mm)
+LAG_MARGIN = 0.25  # another motor lag is taken when its squared residual is below this fraction of the flown one's
+LAG_FRAMES = 10  # ... with at least these frames after the onset
 
 
-def fit_step(t: np.ndarray, z: np.ndarray, known: np.ndarray, drive: np.ndarray) -> tuple[float, float, float] | None:
-    """Least squares of ``z - known = z0 + v0 t + dtheta drive``; returns (dtheta, sum of squared residuals,
-    dtheta's standard error)."""
-    a = np.column_stack((np.ones_like(t), t, drive))
-    y = z - known
-    ata = a.T @ a
-    if abs(np.linalg.det(ata)) < 1e-18 or float(np.max(np.abs(drive))) < MIN_DRIVE:
-        return None
-    inv = np.linalg.inv(ata)
-    coef = inv @ (a.T @ y)
-    res = y - a @ coef
-    sse = float(res @ res)
-    var = max(sse / max(t.size - 3, 1), NOISE_FLOOR ** 2)
-    return float(coef[2]), sse, math.sqrt(var * max(float(inv[2, 2]), 0.0))
+@dataclass(frozen=True)
+class StepEstimate:
+    """What the frames around a detected step tell."""
+
+    theta: float  # 1 / thrust scale after the onset
+    sigma: float  # the layer's vertical offset at the onset (it stays)
+    significant: bool  # False: no change the frames can tell, theta is the one before the onset
+    lag: int  # index of the motor lag whose acting thrust fitted best
 
 
 class StepFit:
-    """Recent ticks and the integrals the fit needs; ``estimate`` fits a step whose onset is near a time."""
+    """Recent ticks and the integrals the fit needs; ``estimate`` fits a step whose onset is near a time.
+
+    The acting thrust is kept for each candidate motor lag: a step is the strongest excitation the lag ever
+    gets (the controller changes the thrust by half the weight), and a wrong lag there biases the mass (a
+    150 ms motor fitted as a 15 ms one put the mass of a 0.5x step at the 0.4 floor)."""
 
     def __init__(self, rate_hz: float, window_s: float = 0.6) -> None:
         self.n = max(8, int(round(window_s * rate_hz)))
         self._t = np.zeros(self.n)
         self._z = np.zeros(self.n)
         self._fresh = np.zeros(self.n, dtype=bool)
-        self._pt = np.zeros(self.n)  # double integral of a_T, the acting thrust over the nominal mass
-        self._vt = np.zeros(self.n)  # its integral
+        self._pt = np.zeros((self.n, 1))  # per lag: double integral of a_T, the acting thrust over the nominal mass
+        self._vt = np.zeros((self.n, 1))  # its integral
         self._pr = np.zeros(self.n)  # double integral of the rest of the prediction (-g + model residual)
         self._theta = np.zeros(self.n)  # the layer's 1 / thrust scale at the tick
         self._sigma = np.zeros(self.n)  # the layer's vertical offset at the tick
+        self._lag = np.zeros(self.n, dtype=int)  # the lag the layer flew with at the tick
         self.reset()
 
     def reset(self) -> None:
         self._i = 0
         self._len = 0
-        self._acc: tuple[float, float] | None = None  # (a_T, a_rest) of the last tick, integrated on the next
-        self._vt_run = self._pt_run = self._vr_run = self._pr_run = 0.0
+        self._acc: tuple[np.ndarray, float] | None = None  # (a_T per lag, a_rest) of the last tick
+        self._vt_run = np.zeros(self._pt.shape[1])
+        self._pt_run = np.zeros(self._pt.shape[1])
+        self._vr_run = self._pr_run = 0.0
 
-    def tick(self, t: float, z: float, a_thrust: float, a_rest: float, theta: float, sigma: float,
-             fresh: bool) -> None:
+    def tick(self, t: float, z: float, a_thrust: float | np.ndarray, a_rest: float, theta: float, sigma: float,
+             fresh: bool, lag: int = 0) -> None:
         """One tick: height ``z`` (a fresh frame's when ``fresh``), the acting thrust's acceleration over the
-        nominal mass ``a_thrust``, the rest of the predicted vertical acceleration ``a_rest`` (-g + model
-        residual), and the layer's current ``theta`` (1 / thrust scale) and vertical offset ``sigma``."""
+        nominal mass ``a_thrust`` (one per candidate lag, or one value), the rest of the predicted vertical
+        acceleration ``a_rest`` (-g + model residual), the layer's current ``theta`` (1 / thrust scale) and
+        vertical offset ``sigma``, and the index ``lag`` of the lag the layer flies with."""
+        a_lags = np.atleast_1d(np.asarray(a_thrust, dtype=float))
+        if a_lags.size != self._pt.shape[1]:  # another set of lags: the integrals start over
+            self._pt = np.zeros((self.n, a_lags.size))
+            self._vt = np.zeros((self.n, a_lags.size))
+            self.reset()
         if self._acc is not None:  # the previous tick's acceleration acted until now (zero-order hold)
             h = min(max(t - self._t[(self._i - 1) % self.n], 0.0), 0.05)
             a_t, a_r = self._acc
-            self._pt_run += h * self._vt_run + 0.5 * h * h * a_t
-            self._vt_run += h * a_t
+            self._pt_run = self._pt_run + h * self._vt_run + 0.5 * h * h * a_t
+            self._vt_run = self._vt_run + h * a_t
             self._pr_run += h * self._vr_run + 0.5 * h * h * a_r
             self._vr_run += h * a_r
         i = self._i
         self._t[i], self._z[i], self._fresh[i] = t, z, fresh
         self._pt[i], self._vt[i], self._pr[i] = self._pt_run, self._vt_run, self._pr_run
-        self._theta[i], self._sigma[i] = theta, sigma
-        self._acc = (a_thrust, a_rest)
+        self._theta[i], self._sigma[i], self._lag[i] = theta, sigma, lag
+        self._acc = (a_lags, a_rest)
         self._i = (i + 1) % self.n
         self._len = min(self._len + 1, self.n)
 
-    def estimate(self, onset_hint: float, frame_dt: float) -> tuple[float, float, bool] | None:
-        """(theta after the step, the layer's vertical offset at the onset, whether the change is significant)
-        from the frames around ``onset_hint``; None if there are too few frames to fit.
+    def estimate(self, onset_hint: float, frame_dt: float) -> StepEstimate | None:
+        """The step from the frames around ``onset_hint``; None if there are too few frames to fit.
 
         The old law (the layer's theta and offset at the onset) holds before the onset; after it only theta
         differs. Position and velocity at the onset are free, so the frames before it pin them. The onset is
-        searched tick by tick near the hint: between two frames, where in the interval the step came matters
-        as much as the two frames after it."""
+        searched tick by tick near the hint (between two frames, where in the interval the step came matters
+        as much as the two frames after it), and with it the motor lag: every onset and lag is one small
+        least squares, solved together."""
         idx = (self._i - self._len + np.arange(self._len)) % self.n
-        t_all = self._t[idx]
         frames = idx[self._fresh[idx]]
-        t_frames = self._t[frames]
-        best: tuple[float, float, float, float] | None = None
-        for j0 in idx[np.abs(t_all - onset_hint) <= 2.0 * frame_dt]:
-            t0 = self._t[j0]
-            before = np.flatnonzero(t_frames <= t0)
-            if before.size < PRE_FRAMES // 2 or t_frames.size - before.size < MIN_POST_FRAMES:
-                continue
-            use = frames[max(0, before[-1] - PRE_FRAMES + 1):]
-            tt = self._t[use] - t0
-            theta0, sigma0 = float(self._theta[j0]), float(self._sigma[j0])
-            thrust = self._pt[use] - self._pt[j0] - self._vt[j0] * tt  # linear parts are absorbed by z0, v0
-            known = theta0 * thrust + (self._pr[use] - self._pr[j0]) + 0.5 * sigma0 * tt * tt
-            fitted = fit_step(tt, self._z[use], known, np.where(tt > 0.0, thrust, 0.0))
-            if fitted is None:
-                continue
-            dtheta, score, se = fitted
-            if theta0 + dtheta > 0.0 and math.isfinite(dtheta) and (best is None or score < best[2]):
-                best = (theta0 + dtheta, sigma0, score, abs(dtheta) / se if se > 0.0 else math.inf)
-        if best is None:
+        onsets = idx[np.abs(self._t[idx] - onset_hint) <= 2.0 * frame_dt]
+        if frames.size == 0 or onsets.size == 0:
             return None
-        if best[3] < SIGNIFICANCE:  # no change the frames can tell: the mass before the onset stands
-            j = idx[np.argmin(np.abs(t_all - onset_hint))]
-            return float(self._theta[j]), float(self._sigma[j]), False
-        return best[0], best[1], True
+        t0 = self._t[onsets]
+        before = np.searchsorted(self._t[frames], t0, side="right")  # frames at or before each onset
+        usable = (before >= PRE_FRAMES // 2) & (frames.size - before >= MIN_POST_FRAMES)
+        if not np.any(usable):
+            return None
+        onsets, t0, before = onsets[usable], t0[usable], before[usable]
+        w = (np.arange(frames.size)[None, :] >= np.maximum(before - PRE_FRAMES, 0)[:, None]).astype(float)
+        tt = self._t[frames][None, :] - t0[:, None]  # (onset, frame)
+        theta0, sigma0 = self._theta[onsets], self._sigma[onsets]
+        # (onset, frame, lag); the linear parts are absorbed by z0 and v0
+        thrust = (self._pt[frames][None, :, :] - self._pt[onsets][:, None, :]
+                  - self._vt[onsets][:, None, :] * tt[:, :, None])
+        rest = self._pr[frames][None, :] - self._pr[onsets][:, None] + 0.5 * sigma0[:, None] * tt * tt
+        y = self._z[frames][None, :, None] - theta0[:, None, None] * thrust - rest[:, :, None]
+        drive = np.where(tt[:, :, None] > 0.0, thrust, 0.0)
+        ones = np.broadcast_to(np.ones_like(tt)[:, :, None], drive.shape)
+        a = np.stack((ones, np.broadcast_to(tt[:, :, None], drive.shape), drive), axis=-1)  # (onset, frame, lag, 3)
+        aw = a * w[:, :, None, None]
+        ata = np.einsum("jfli,jflk->jlik", aw, a)
+        aty = np.einsum("jfli,jfl->jli", aw, y)
+        ok = (np.abs(np.linalg.det(ata)) >= 1e-18) & (np.max(np.abs(drive) * w[:, :, None], axis=1) >= MIN_DRIVE)
+        ata = np.where(ok[:, :, None, None], ata, np.eye(3))
+        inv = np.linalg.inv(ata)
+        coef = np.einsum("jlik,jlk->jli", inv, aty)
+        res = y - np.einsum("jfli,jli->jfl", a, coef)
+        sse = np.einsum("jf,jfl->jl", w, res * res)
+        rows = w.sum(axis=1)[:, None]
+        var = np.maximum(sse / np.maximum(rows - 3.0, 1.0), NOISE_FLOOR ** 2)
+        se = np.sqrt(var * np.maximum(inv[:, :, 2, 2], 0.0))
+        dtheta = coef[:, :, 2]
+        ok &= np.isfinite(dtheta) & (theta0[:, None] + dtheta > 0.0)
+        if not np.any(ok):
+            return None
+        score = np.where(ok, sse, np.inf)
+        flown = int(self._lag[onsets[0]])
+        lag = flown if flown < score.shape[1] else 0
+        best_by_lag = score.min(axis=0)
+        other = int(np.argmin(best_by_lag))
+        post = frames.size - before[int(np.argmin(score[:, other]))]
+        # Another lag takes over only by a wide margin and after enough frames: in the first ones all lags fit
+        # alike, and on a plant flown with its own lag another fitted up to 0.56 of its squares now and then.
+        if not math.isfinite(best_by_lag[lag]) or (post >= LAG_FRAMES and best_by_lag[other] < LAG_MARGIN * best_by_lag[lag]):
+            lag = other
+        j = int(np.argmin(score[:, lag]))
+        change = abs(float(dtheta[j, lag])) / float(se[j, lag]) if se[j, lag] > 0.0 else math.inf
+        if change < SIGNIFICANCE:  # no change the frames can tell: the mass before the onset stands
+            k = idx[np.argmin(np.abs(self._t[idx] - onset_hint))]
+            return StepEstimate(float(self._theta[k]), float(self._sigma[k]), False, lag)
+        return StepEstimate(float(theta0[j] + dtheta[j, lag]), float(sigma0[j]), True, lag)
 
 
-__all__ = ["StepFit", "fit_step"]
+__all__ = ["StepEstimate", "StepFit"]

@@ -43,6 +43,19 @@ class ThrustLagBank:
         """N, the thrust acting now under the chosen lag (None before the first command)."""
         return None if self._acting is None else float(self._acting[self.choice])
 
+    def acting_all(self) -> np.ndarray | None:
+        """N, the thrust acting now under each candidate lag (None before the first command)."""
+        return None if self._acting is None else self._acting.copy()
+
+    def choose(self, index: int) -> None:
+        """Take lag ``index``, told by a stronger excitation than hover gives (a mass step's fit); the running
+        scores start over, so hover frames must build their own case before they switch back."""
+        if index != self.choice:
+            self.choice = int(index)
+            self.switches += 1
+            self._ms[:] = 0.0
+            self._frames = 0
+
     def sent(self, thrust: float) -> None:
         """A command's thrust [N] was sent this tick."""
         if self._acting is None:

@@ -226,6 +226,19 @@ def test_flight_at_thrust_to_weight_1_05_after_a_mass_step_stays_up(tmp_path: An
     assert _at(msgs, 4.5)["thrust_scale"] == pytest.approx(factor, rel=0.05)
 
 
+def test_a_step_tells_the_layer_a_slow_motor_and_the_mass_it_carries(tmp_path: Any) -> None:
+    """A 150 ms motor 10 % weaker than the vehicle config says, which believes 15 ms: while the take-off's frames
+    teach the mass they cannot tell the lag; the 0.5x step's fit can (with the flown 15 ms lag alone the
+    step went unseen, and the error was 10x)."""
+    res, msgs = _fly(tmp_path, **{"controller.adaptation": "dob", "sim.motor_time_constant": 0.15,
+                                  "sim.thrust_map_scale": 0.9, "sim.mass_changes": [{"t": 2.5, "factor": 0.5}]})
+    assert res.outcome.message.startswith("flight complete")
+    assert res.summary.extra["adaptation_thrust_lag_s"] == pytest.approx(0.15)
+    scale = np.array([m["thrust_scale"] for m in msgs if 2.8 <= m["t"] <= 4.4])
+    assert np.all(np.abs(scale - 0.5 / 0.9) < 0.05)
+    assert res.summary.mse < 1e-2
+
+
 def test_adaptation_none_flies_todays_numbers(tmp_path: Any) -> None:
     """With adaptation none the settings are not read: changing them changes nothing, to the last bit."""
     a, msgs = _fly(tmp_path, **{"controller.adaptation": "none"})
