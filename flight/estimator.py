@@ -24,6 +24,7 @@ import numpy as np
 
 from cfknode.flight.latency import CommandDelayPredictor
 from cfknode.flight.settings import EstimatorConfig
+from cfknode.kernel.imu import ImuSample
 from cfknode.mocap.source import Pose
 
 # Velocity uncertainty at the first frame (m/s): the vehicle is on the ground or
@@ -45,6 +46,9 @@ class StateEstimate:
     # The newest mocap frame as measured (time with the latency taken off, position), unfiltered: the fast
     # layer's step fit reads heights without the filter's lag. None where no frame fed the estimate.
     frame: tuple[float, np.ndarray] | None = None
+    # The newest accelerometer sample the vehicle logged (None without one): the fast layer sees a mass change
+    # in the specific force a sample after it happens, where the frames need several.
+    imu: ImuSample | None = None
 
 
 class VelocityEstimator:
