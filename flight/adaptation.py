@@ -40,7 +40,8 @@ from typing import Literal
 
 import numpy as np
 
-from cfknode.flight.step_fit import StepFit
+from cfknode.flight.imu_step import ImuStepDetector
+from cfknode.flight.step_fit import LAG_FRAMES, StepFit
 
 MODES = ("none", "l1", "dob")
 Mode = Literal["none", "l1", "dob"]
@@ -223,7 +224,9 @@ class FastAdaptation:
         self.rebases = 0
         self.steps = 0  # vertical steps detected
         self.fits = 0  # frames at which a step's mass was re-fitted
+        self.imu_steps = 0  # steps the accelerometer raised first
         self._fit = StepFit(rate_hz)
+        self._imu = ImuStepDetector()
         self.reset()
 
     def reset(self) -> None:
@@ -254,19 +257,25 @@ class FastAdaptation:
         self._frame_dt = 0.01  # s between mocap frames, learned
         self._fitting = False  # heights are given: steps are fitted
         self.fit_lag: int | None = None  # the motor lag (an index of ``thrust_by_lag``) the last significant fit chose
+        self._imu.reset()
+        self._imu_step = False  # the step being tracked was raised by the accelerometer
+        self._imu_sigma = 0.0  # the vertical offset when it was
+        self._fit_frames = 0  # frames after the onset in the step's latest height fit
         self.resets += 1
 
     def update(
         self, t: float, v_meas: np.ndarray, x_meas: np.ndarray | None, u_applied: np.ndarray, model_acc: np.ndarray,
         saturated: tuple[bool, bool] = (False, False), pose_fresh: bool = True, u_commanded: np.ndarray | None = None,
-        thrust_by_lag: np.ndarray | None = None, lag: int = 0,
+        thrust_by_lag: np.ndarray | None = None, lag: int = 0, imu_theta: tuple[float, float] | None = None,
     ) -> AdaptationEstimate:
         """One tick. ``u_applied`` / ``model_acc`` are the previous tick's command as the vehicle flew it (sent
         thrust along the measured body axis, in the model's input space) and the model's acceleration for it;
         ``saturated`` is (thrust at the clamp, tilt limited) for that command; ``u_commanded`` is what the
         Mellinger layer was asked for (after its limits), for the axis gains. ``thrust_by_lag``: the acting
         thrust's vertical acceleration over the nominal mass under each candidate motor lag, ``lag`` the one
-        ``u_applied`` used (a step's fit then tells the lag too: ``fit_lag``). Returns the estimate for this tick."""
+        ``u_applied`` used (a step's fit then tells the lag too: ``fit_lag``). ``imu_theta``: (time, theta) of an
+        accelerometer sample new this tick, its specific force over the acting thrust's per nominal mass
+        (imu_step.py). Returns the estimate for this tick."""
         if not self.s.enabled:
             return self.estimate
         if not (np.all(np.isfinite(v_meas)) and np.all(np.isfinite(u_applied)) and np.all(np.isfinite(model_acc))):
@@ -291,6 +300,8 @@ class FastAdaptation:
             a_thrust = (float(u_applied[2]) + self.g) * scale if thrust_by_lag is None else thrust_by_lag
             self._fit.tick(t, float(x_meas[2]), a_thrust, float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale,
                            float(self._out[2]), pose_fresh, lag)
+        if self._fitting and imu_theta is not None:
+            self._imu_sample(t, *imu_theta)
         stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
@@ -380,11 +391,30 @@ class FastAdaptation:
                 if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
                     self._jump = dv / span
                 self._onset_hint = t - span
+                self._fit_frames = 0
+                self._imu_step = False
             self._step_until = t + self.s.step_hold_s
             self._cusum = (0.0, 0.0)
             self._run = [[0.0, 0.0], [0.0, 0.0]]
             return True
         return stepping
+
+    def _imu_sample(self, t: float, t_sample: float, theta: float) -> None:
+        """An accelerometer sample: a step it sees starts the step's tracking at once, from its onset."""
+        stepping = t < self._step_until
+        onset = self._imu.sample(t_sample, theta, 1.0 / self.estimate.thrust_scale, stepping)
+        if onset is None:
+            return
+        self._last_alarm = t
+        self.steps += 1
+        self.imu_steps += 1
+        self._onset_hint = onset
+        self._step_until = t + self.s.step_hold_s
+        self._cusum = (0.0, 0.0)
+        self._run = [[0.0, 0.0], [0.0, 0.0]]
+        self._fit_frames = 0
+        self._imu_step = True
+        self._imu_sigma = float(self._out[2])
 
     def _refit(self, stepping: bool, fresh: bool) -> tuple[float, float, bool] | None:
         """While a step is tracked with heights, refined each frame: (thrust scale, offset before the onset,
@@ -392,6 +422,7 @@ class FastAdaptation:
         yet: the scale and offset of before the onset, held. None without heights: the observer tracks it."""
         if not stepping or self._onset_hint is None or not self._fitting:  # no heights: the observer tracks it
             self._fitted = None
+            self._imu_step = False
             return None
         if fresh:
             got = self._fit.estimate(self._onset_hint, self._frame_dt)
@@ -399,6 +430,13 @@ class FastAdaptation:
                 self._fitted = (float(np.clip(1.0 / got.theta, *self.s.thrust_scale_bounds)), got.sigma, got.significant)
                 self.fits += int(got.significant)
                 self.fit_lag = got.lag if got.significant else None
+                self._fit_frames = got.frames
+        # Raised by the accelerometer: its samples tell the mass until the heights have as many frames as a lag
+        # needs (a height fit on a few frames is the noisier one); the heights then say whether there was a step.
+        imu = self._imu.theta() if self._imu_step else None
+        if imu is not None and self._fit_frames < LAG_FRAMES:
+            sigma0 = self._fitted[1] if self._fitted is not None else self._imu_sigma
+            self._fitted = (float(np.clip(1.0 / imu, *self.s.thrust_scale_bounds)), sigma0, True)
         if self._fitted is None:  # too few frames yet: the estimate holds still rather than guess
             self._fitted = (self.estimate.thrust_scale, float(self._sigma[2]), False)
         return self._fitted

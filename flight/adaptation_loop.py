@@ -12,6 +12,7 @@ mocap is stale (inside ``FastAdaptation``); re-based when the model slot's versi
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,8 @@ class LoopAdaptation:
         self._version: int | None = None
         self._ground = ground_z  # None: the first estimate's height
         self.saturated_ticks = 0
+        self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
+        self._imu_t = -float("inf")  # the newest accelerometer sample used
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -87,11 +90,31 @@ class LoopAdaptation:
             self.lags.forget_velocity()
         acting = self.lags.acting_all()
         by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
+        imu = self._imu_theta(now, est) if airborne else None
         estimate = self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
-                                     u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice)
+                                     u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
         return estimate
+
+    def _imu_theta(self, now: float, est: Any) -> tuple[float, float] | None:
+        """(time, theta) of an accelerometer sample new since the last tick: the specific force along the body
+        axis over the thrust acting when it was measured, per nominal mass. None without a new sample."""
+        acting = self.lags.acting()
+        if acting is not None:
+            self._acting_recent.append((now, acting))
+        imu = getattr(est, "imu", None)
+        if imu is None or imu.t <= self._imu_t or not self._acting_recent:
+            return None
+        self._imu_t = imu.t
+        thrust = self._acting_recent[0][1]
+        for t, value in self._acting_recent:  # the thrust of the tick the sample fell in
+            if t > imu.t:
+                break
+            thrust = value
+        if thrust <= 0.0:
+            return None
+        return imu.t, float(imu.specific_force[2]) * self.vehicle.mass / thrust
 
     def flown_acc(self, bz: np.ndarray) -> np.ndarray:
         """The last command as flown: the acting thrust along the measured body z axis ``bz``, over the estimated

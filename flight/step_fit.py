@@ -40,6 +40,7 @@ class StepEstimate:
     sigma: float  # the layer's vertical offset at the onset (it stays)
     significant: bool  # False: no change the frames can tell, theta is the one before the onset
     lag: int  # index of the motor lag whose acting thrust fitted best
+    frames: int  # frames after the onset the fit saw
 
 
 class StepFit:
@@ -156,8 +157,8 @@ class StepFit:
         change = abs(float(dtheta[j, lag])) / float(se[j, lag]) if se[j, lag] > 0.0 else math.inf
         if change < SIGNIFICANCE:  # no change the frames can tell: the mass before the onset stands
             k = idx[np.argmin(np.abs(self._t[idx] - onset_hint))]
-            return StepEstimate(float(self._theta[k]), float(self._sigma[k]), False, lag)
-        return StepEstimate(float(theta0[j] + dtheta[j, lag]), float(sigma0[j]), True, lag)
+            return StepEstimate(float(self._theta[k]), float(self._sigma[k]), False, lag, int(frames.size - before[j]))
+        return StepEstimate(float(theta0[j] + dtheta[j, lag]), float(sigma0[j]), True, lag, int(frames.size - before[j]))
 
 
 __all__ = ["StepEstimate", "StepFit"]

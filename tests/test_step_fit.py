@@ -104,10 +104,12 @@ def layer(**kw: Any) -> FastAdaptation:
 
 
 def hover(lay: FastAdaptation, seconds: float, theta_at: Callable[[float], float], noise: float,
-          seed: int) -> dict[str, Any]:
+          seed: int, imu_noise: float | None = None) -> dict[str, Any]:
     """The layer holding a vertical point mass at 1 m (a PD on the frames, thrust from the estimated mass);
-    the layer sees mocap heights at 100 Hz with ``noise`` m and a velocity differenced from them."""
+    the layer sees mocap heights at 100 Hz with ``noise`` m and a velocity differenced from them, and with
+    ``imu_noise`` (m/s^2) an accelerometer at 100 Hz between the frames."""
     rng = np.random.default_rng(seed)
+    imu_rng = np.random.default_rng(seed + 1000)
     dt = 1.0 / RATE
     z, v = 1.0, 0.0
     seen_z, seen_v, last_z = 1.0, 0.0, 1.0
@@ -128,8 +130,12 @@ def hover(lay: FastAdaptation, seconds: float, theta_at: Callable[[float], float
             seen_z += dt * seen_v
         before = lay.steps
         cmd = np.array([0.0, 0.0, u])
+        imu = None
+        if imu_noise is not None and i % FRAME_TICKS == 2:  # specific force over the thrust per nominal mass
+            thrust = e.thrust_scale * (u + G)
+            imu = (t, (a + G + imu_noise * imu_rng.standard_normal()) / thrust)
         lay.update(t, np.array([0.0, 0.0, seen_v]), np.array([0.0, 0.0, seen_z, 0.0, 0.0, seen_v]), cmd, cmd,
-                   (False, False), fresh)
+                   (False, False), fresh, imu_theta=imu)
         if lay.steps > before:
             alarms.append(t)
         scales.append(lay.estimate.thrust_scale)
@@ -152,3 +158,41 @@ def test_a_false_alarm_on_mocap_noise_leaves_the_mass_alone() -> None:
         assert len(res["alarms"]) <= 2, noise  # the flown threshold fires now and then on noise ...
         assert float(np.max(np.abs(res["scale"] - 1.0))) < 0.01, noise  # ... and the fit then keeps the mass
         assert float(np.max(np.abs(res["z"] - 1.0))) < 0.005, noise
+
+
+def test_the_accelerometer_sees_a_step_a_sample_after_it_and_the_frames_confirm_it() -> None:
+    step_t = 3.0
+    frames_only = hover(layer(), 3.6, lambda t: 1.0 if t < step_t else 0.5, 3e-4, seed=4)
+    lay = layer()
+    with_imu = hover(lay, 3.6, lambda t: 1.0 if t < step_t else 0.5, 3e-4, seed=4, imu_noise=0.3)
+    assert len(with_imu["alarms"]) == 1 and lay.imu_steps == 1
+    assert with_imu["alarms"][0] - step_t < 0.012  # the first sample after the step (frames: 3-4 frames)
+    assert frames_only["alarms"][0] - with_imu["alarms"][0] > 0.01
+    after = with_imu["scale"][int((with_imu["alarms"][0] + 0.005) * RATE):int((step_t + 0.6) * RATE)]
+    assert np.all(np.abs(after - 0.5) < 0.03)  # within 6 % from 5 ms after the alarm, through the frames' fit
+    rise = lambda r: float(np.max(r["z"])) - 1.0  # noqa: E731
+    assert rise(with_imu) < 0.6 * rise(frames_only)
+
+
+def test_accelerometer_noise_and_offset_raise_no_alarm() -> None:
+    for imu_noise in (0.1, 0.5):
+        lay = layer()
+        res = hover(lay, 20.0, lambda t: 1.02, 3e-4, seed=2, imu_noise=imu_noise)  # 2 % heavier than believed
+        assert lay.imu_steps == 0, imu_noise
+        assert float(np.max(np.abs(res["z"] - 1.0))) < 0.005
+
+
+def test_the_step_estimate_from_samples_takes_their_usual_offset_off() -> None:
+    from cfknode.flight.imu_step import ImuStepDetector
+
+    rng = np.random.default_rng(0)
+    det = ImuStepDetector()
+    theta_layer, offset = 1.0, 0.04  # the accelerometer reads 4 % high
+    onset = None
+    for i in range(300):
+        t = 0.01 * i
+        true = 1.0 if t < 2.0 else 0.75
+        got = det.sample(t, true + offset + 0.02 * rng.standard_normal(), theta_layer, onset is not None)
+        onset = onset if got is None else got
+    assert onset is not None and 1.99 <= onset <= 2.01
+    assert abs(det.theta() - 0.75) < 0.02
