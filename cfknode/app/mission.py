@@ -223,6 +223,7 @@ def _fly_session(
                 supervisor=supervisor,
                 log=log,
                 truth=sess.truth,
+                imu=getattr(sess, "imu", None),
                 observers=[
                     *observers,
                     *([status] if status is not None else []),
