@@ -11,6 +11,7 @@ also decides what each tick flies (``plan``) and when the flight is over (``fini
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
@@ -21,6 +22,7 @@ from cfknode.flight.controller import Controller, TickInfo, TickObserver
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.tick_guard import GuardedLog, GuardedObserver, fallback_command, hold_reference
 from cfknode.kernel.clock import Clock
+from cfknode.kernel.imu import ImuSource
 from cfknode.kernel.reference import RefSamples, Reference
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.mocap.source import PoseSource
@@ -46,6 +48,7 @@ class FlightParts:
     truth: Callable[[], np.ndarray] | None = None  # simulator's true 13-state, for logs and MSE
     observers: list[TickObserver] = field(default_factory=list)
     estop: EstopMailbox | None = None  # where `cfknode estop` reaches this flight
+    imu: ImuSource | None = None  # the vehicle's accelerometer: its newest sample goes into each tick's estimate
 
 
 @dataclass
@@ -138,6 +141,8 @@ async def fly(parts: FlightParts) -> FlightRecord:
     inner_observers = list(controller.observers)
     controller.observers[:] = [GuardedObserver(o, detached) for o in inner_observers]
     controller_failed = estimator_failed = False
+    imu = parts.imu
+    logs_imu = imu is not None  # a flight with an IMU logs what each tick saw of it, NaN for nothing yet
     held: RefSamples | None = None  # the hold reference once the trajectory has raised
     try:
         with stop_signal_handler(sup), estop_watch(sup, parts.estop):
@@ -172,6 +177,12 @@ async def fly(parts: FlightParts) -> FlightRecord:
                         estimator_failed = True
                         fault("the estimator", exc, ERROR_STOP)
                         est = None
+                if est is not None and imu is not None:
+                    try:
+                        est = dataclasses.replace(est, imu=imu.latest(now))
+                    except Exception as exc:  # noqa: BLE001 - fly on without it, as a flight with no IMU
+                        imu = None
+                        fault("the IMU source", exc, ERROR_RECORD)
                 if fresh:
                     log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                               "stamp": pose.t})
@@ -262,7 +273,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 rec.ticks += 1
                 try:
                     _log_tick(log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
-                              status if source == "fallback" else "", fresh, sup.state.value)
+                              status if source == "fallback" else "", fresh, sup.state.value, logs_imu)
                 except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
                     fault("the flight log (tick messages)", exc, ERROR_RECORD)
                 model = controller.model
@@ -292,6 +303,11 @@ async def fly(parts: FlightParts) -> FlightRecord:
     return rec.trimmed()
 
 
+_NAN = float("nan")
+_NAN3 = np.full(3, np.nan)
+_NAN3.flags.writeable = False
+
+
 def _log_tick(
     log: Log,
     now: float,
@@ -308,12 +324,17 @@ def _log_tick(
     status: str = "",
     fresh: bool = True,
     phase: str = "",
+    logs_imu: bool = False,
 ) -> None:
     if est is not None:
         # fresh, phase and the newest frame are what the fast layer read this tick: replay feeds them back.
         state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q, "fresh": bool(fresh), "phase": phase}
         if est.frame is not None:
             state["frame_t"], state["frame_p"] = est.frame
+        if logs_imu:
+            imu = est.imu
+            state["imu_t"] = imu.t if imu is not None else _NAN
+            state["imu_f"] = imu.specific_force if imu is not None else _NAN3
         if truth is not None:
             state["p_true"] = truth[:3]
             state["v_true"] = truth[3:6]

@@ -381,6 +381,11 @@ class SimLinkDriver(CRTPDriver):
         elif cmd != PARAM_MISC_SET_BY_NAME or not set_param_by_name(self._endpoint.param_values, data[1:]):
             self.unknown_packets += 1  # persistent storage is not modelled
 
+    def log_payloads_emitted(self, block_id: int) -> int:
+        """Log-data packets block ``block_id`` has queued for the host so far. In lockstep the host
+        waits until its callbacks have seen this many (cflib reads them on its own thread)."""
+        return self._logs.emitted(block_id)
+
     # --- per-step work ---------------------------------------------------------------------------
 
     def _on_sim_step(self, t: float) -> None:

@@ -46,6 +46,9 @@ class SimConfig:
     attitude_gain: float = 1.0  # roll/pitch the attitude loop tracks / the commanded angle
     yaw_gain: float = 1.0  # yaw rate the attitude loop tracks / the commanded rate
     downwash: DownwashConfig = DownwashConfig()
+    # m/s^2, std per accelerometer sample (acc.x/y/z), each axis. An assumption for a vibrating Crazyflie 2.x
+    # after the firmware's low-pass filtering: docs/hardware.md#imu-log.
+    imu_noise: float = 0.3
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from typing import Any, Callable, Protocol
 
 from cflib.crtp.exceptions import CommunicationException
 
+from cfknode.sim_backend.accelerometer import Accelerometer
 from cfknode.sim_backend.crtp_codes import SCHEME
 from cfknode.sim_backend.sim_toc import PARAM_TOC, PM_BATTERY, PM_LOW_POWER, param_index
 
@@ -65,8 +66,16 @@ class _Endpoint:
         self._low_voltage_index = param_index("pm", "lowVoltage")
         self._lock = threading.Lock()
         self.active = True  # cleared on unregister (a step observer cannot be removed)
+        self._accelerometer: Accelerometer | None = None
         # Observed from registration on: pm.state needs the voltage history, logs need sim time.
         sim.add_step_observer(self._on_step)
+
+    @property
+    def accelerometer(self) -> Accelerometer:
+        """The simulator's accelerometer, built when a log block first reads it."""
+        if self._accelerometer is None:
+            self._accelerometer = Accelerometer(self.sim)
+        return self._accelerometer
 
     def attach(self, driver: AttachedLink) -> None:
         with self._lock:

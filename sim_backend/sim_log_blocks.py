@@ -24,7 +24,7 @@ _LOG_MAX_PAYLOAD = 26  # firmware LOG_MAX_LEN
 class _LogBlock:
     """A log block: variables, fetch types, period, next emission."""
 
-    __slots__ = ("block_id", "entries", "period_s", "next_t", "started")
+    __slots__ = ("block_id", "entries", "period_s", "next_t", "started", "emitted")
 
     def __init__(self, block_id: int) -> None:
         self.block_id = block_id
@@ -32,6 +32,7 @@ class _LogBlock:
         self.period_s = 0.0
         self.next_t = 0.0
         self.started = False
+        self.emitted = 0  # payloads sent to the host: a lockstep host waits until it has read them all
 
     def payload_size(self) -> int:
         return sum(struct.calcsize(fmt) for _, fmt in self.entries)
@@ -109,6 +110,12 @@ class LogBlocks:
         block.started = True
         return 0
 
+    def emitted(self, block_id: int) -> int:
+        """How many payloads block ``block_id`` has sent (0 for an unknown block)."""
+        with self._lock:
+            block = self._blocks.get(block_id)
+            return block.emitted if block is not None else 0
+
     def due_payloads(self, t: float, endpoint: EndpointView) -> list[bytes]:
         """The log-data payloads of each started block that is due at ``t``."""
         out: list[bytes] = []
@@ -123,5 +130,6 @@ class LogBlocks:
                 payload = bytearray((block.block_id, stamp & 0xFF, (stamp >> 8) & 0xFF, stamp >> 16))
                 for var, fmt in block.entries:
                     payload += pack_clamped(fmt, var.read(endpoint))
+                block.emitted += 1
                 out.append(bytes(payload))
         return out

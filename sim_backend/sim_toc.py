@@ -34,10 +34,13 @@ _PARAM_READ_ONLY = 0x40
 
 
 class EndpointView(Protocol):
-    """What a log variable reads: the simulator and the power monitor's state."""
+    """What a log variable reads: the simulator, the power monitor's state and the accelerometer."""
 
     sim: Any
     pm_state: int
+
+    @property
+    def accelerometer(self) -> Any: ...  # sim_backend/accelerometer.py: reading_g() -> (x, y, z) in g
 
 
 @dataclass(frozen=True)
@@ -90,12 +93,24 @@ def _rssi(endpoint: EndpointView) -> float:
     return SIM_RSSI
 
 
-# What a flight host logs (Crazyswarm2's status topic: docs/hardware.md#logging).
+def _acc(axis: int) -> Callable[[EndpointView], float]:
+    def read(endpoint: EndpointView) -> float:
+        return endpoint.accelerometer.reading_g()[axis]
+
+    return read
+
+
+# What a flight host logs (Crazyswarm2's status topic: docs/hardware.md#logging), then the
+# accelerometer in g, body frame (the firmware's acc group; docs/hardware.md#imu-log).
+# New variables go at the end: the ids of the older ones stay put.
 LOG_TOC: tuple[LogVariable, ...] = (
     LogVariable("pm", "vbat", 0x07, _battery_voltage),
     LogVariable("pm", "state", 0x04, _pm_state),
     LogVariable("supervisor", "info", 0x02, _supervisor_info),
     LogVariable("radio", "rssi", 0x01, _rssi),
+    LogVariable("acc", "x", 0x07, _acc(0)),
+    LogVariable("acc", "y", 0x07, _acc(1)),
+    LogVariable("acc", "z", 0x07, _acc(2)),
 )
 
 # Parameters a host sets or reads before flight (docs/hardware.md#extpose, #parameters,

@@ -238,3 +238,11 @@ def test_run_flight_with_backend_cf_against_the_simulator(tmp_path: Path) -> Non
     assert extra["preflight"]["ok"], extra["preflight"]
     assert extra["firmware_after_shutdown"] != "locked"
     assert res.summary.max_error < 0.1
+    # The accelerometer block through HardwareRadio: samples on the wall flight clock, never after the tick.
+    from cfknode.app.logs.writer import read_log
+
+    log = read_log(res.summary.log_path)
+    t, imu_t = log.times("/state"), log.array("/state", "imu_t")
+    seen = np.isfinite(imu_t)
+    assert extra["imu_samples"] > 100 and seen.mean() > 0.9
+    assert np.all(imu_t[seen] <= t[seen] + 5e-4)

@@ -70,6 +70,7 @@ class OnlineConfig:
 class RadioConfig:
     uri: str
     tx_rate_hz: float
+    imu_log: bool = True  # the accelerometer log block (docs/hardware.md#imu-log)
 
 
 @dataclass(frozen=True)

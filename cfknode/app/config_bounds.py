@@ -130,6 +130,7 @@ BOUNDS: dict[str, Bound] = {
     "sim.mocap_attitude_noise": _b(0, 0.5, "rad"),
     "sim.mocap_latency": _b(0, 0.5, "s"),
     "sim.mocap_dropout_prob": _b(0, 1, open_high=True),
+    "sim.imu_noise": _b(0, 5, "m/s^2"),  # 5 m/s^2 is half a g of noise on every sample: a broken mount
     "sim.mass_changes.t": _SIM_TIME,
     "sim.mass_changes.factor": _b(0.25, 4.0, "x nominal mass"),  # the range the online gate is built for
     "sim.wind": _WIND,

@@ -223,6 +223,7 @@ def _fly_session(
                 supervisor=supervisor,
                 log=log,
                 truth=sess.truth,
+                imu=getattr(sess, "imu", None),
                 observers=[
                     *observers,
                     *([status] if status is not None else []),
@@ -265,6 +266,7 @@ def _fly_session(
                     "backend": cfg.backend,
                     "lockstep": bool(sess.clock.lockstep),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
+                    **_imu_fields(sess.radio, parts.imu is not None),
                     **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
                     "internal_errors": list(outcome.errors),
@@ -278,6 +280,14 @@ def _fly_session(
         summary = dataclasses.replace(summary, extra={**summary.extra, "flight_log": incomplete})
         outcome = dataclasses.replace(outcome, message=f"{outcome.message}; but the flight log is {incomplete}")
     return FlightResult(summary=summary, record=record, outcome=outcome, learner=online, log_incomplete=incomplete)
+
+
+def _imu_fields(radio: Any, flown: bool) -> dict[str, Any]:
+    """The accelerometer block's counts for the summary, when the flight had one (lockstep: samples waited out)."""
+    if not flown or not hasattr(radio, "stats"):
+        return {}
+    stats = radio.stats()
+    return {"imu_samples": stats.imu_samples, "imu_late": stats.imu_late}
 
 
 def _controller_label(cfg: Config, loaded_model: bool, online: bool) -> str:

@@ -29,6 +29,7 @@ import numpy as np
 
 from cfknode.app.config import Config, ConfigError, build_config, default_dict
 from cfknode.app.logs.reader import LogData
+from cfknode.kernel.imu import ImuSample
 
 __all__ = [
     "COMMAND_FIELDS",
@@ -61,6 +62,7 @@ class _LoggedState:
     q: np.ndarray
     t: float = 0.0
     frame: tuple[float, np.ndarray] | None = None  # the newest mocap frame the fast layer read (logs that have it)
+    imu: ImuSample | None = None  # the accelerometer sample the tick saw (logs that have it)
 
 
 class ResidualModel(Protocol):
@@ -150,7 +152,7 @@ def replay_log(
     """Run ``cfg``'s controller on every controller tick of ``log``; see the module docstring.
 
     The fast layer (``controller.adaptation``) is fed what it read in flight (fresh frames, the supervisor's
-    phase, the newest frame), so a flight replays exactly. Replayed with another model, the layer re-estimates
+    phase, the newest frame, the accelerometer sample), so a flight replays exactly. Replayed with another model, the layer re-estimates
     from states those commands never flew and takes out part of what the model changes: compare models on a
     flight flown with ``controller.adaptation: none``, or replay with ``--set controller.adaptation=none``.
 
@@ -193,7 +195,7 @@ def replay_log(
             continue
         frame = (float(state["frame_t"]), np.asarray(state["frame_p"], dtype=float)) if "frame_t" in state else None
         est = _LoggedState(np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float),
-                           np.asarray(state["q"], dtype=float), t, frame)
+                           np.asarray(state["q"], dtype=float), t, frame, _logged_imu(state))
         ref = trajectory.sample(controller.preview_times(t))
         if t in refs:
             mismatch = max(mismatch, float(np.max(np.abs(ref.p[0] - np.asarray(refs[t]["p"], dtype=float)))))
@@ -293,6 +295,15 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
     if leaf not in node:
         raise ConfigError(f"unknown config key '{key}'")
     node[leaf] = value
+
+
+def _logged_imu(state: Mapping[str, Any]) -> ImuSample | None:
+    """The accelerometer sample a tick saw; None where it saw none (null) or the log predates the field."""
+    t, f = state.get("imu_t"), state.get("imu_f")
+    if t is None or f is None or not math.isfinite(float(t)):
+        return None
+    force = _vector3(f)
+    return ImuSample(float(t), np.asarray(force, dtype=float)) if all(map(math.isfinite, force)) else None
 
 
 def _vector3(value: Any) -> list[float]:

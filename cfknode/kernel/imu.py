@@ -1,10 +1,14 @@
-"""One accelerometer sample from the vehicle, as its log block delivers it."""
+"""One accelerometer sample from the vehicle, as its log block delivers it, and where the loop gets it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
+
+# The firmware logs acc.x/y/z in g of 9.81 m/s^2 (its GRAVITY_MAGNITUDE); the simulated firmware uses the same.
+FIRMWARE_G = 9.81
 
 
 @dataclass(frozen=True)
@@ -24,4 +28,10 @@ class ImuSample:
         object.__setattr__(self, "specific_force", f)
 
 
-__all__ = ["ImuSample"]
+class ImuSource(Protocol):
+    """What the flight loop reads each tick: the newest sample measured at or before ``now``, or None."""
+
+    def latest(self, now: float) -> ImuSample | None: ...
+
+
+__all__ = ["FIRMWARE_G", "ImuSample", "ImuSource"]

@@ -14,6 +14,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cfknode.kernel.clock import Clock
+from cfknode.kernel.imu import ImuSource
 from cfknode.kernel.link import LinkStatus
 from cfknode.mocap.source import PoseSource
 
@@ -25,6 +26,7 @@ class Backend(Protocol):
     radio: Any  # a CflibRadio: connect, send, shutdown (the hand-back), stats
     start_position: np.ndarray  # where the take-off starts, m
     events: tuple[dict[str, Any], ...]  # logged before take-off (pre-flight checks)
+    imu: ImuSource | None  # the vehicle's accelerometer samples (radio.imu_log), None without
 
     def truth(self) -> np.ndarray | None:
         """The true 13-state in simulation (logs, MSE), None on hardware."""

@@ -14,6 +14,9 @@ each new pose as an extpose. Two ways to drive it:
 (docs/hardware.md#emergency-stop) on the same schedule owner, when the firmware has the
 supervisor port (protocol >= 12).
 
+``imu_log=True`` also starts the accelerometer log block (imu_log.py): ``imu`` is then an
+``ImuSource`` whose ``latest(now)`` the loop reads every tick.
+
 ``HardwareRadio`` (hardware_radio.py) adds what a real Crazyflie needs.
 """
 
@@ -29,10 +32,12 @@ import cflib.crtp
 import numpy as np
 from cflib.crazyflie import Crazyflie
 
+from cfknode.app.backends.imu_log import ImuLog, start_imu_log
 from cfknode.app.backends.tx_cadence import TIME_EPS, Cadence
 from cfknode.kernel.messages import first_line
 
 if TYPE_CHECKING:
+    from cfknode.kernel.imu import ImuSample
     from cfknode.kernel.setpoint import AttitudeSetpoint
 
 SUPERVISOR_PROTOCOL = 12  # supervisor port and its e-stop watchdog (docs/hardware.md#emergency-stop)
@@ -52,6 +57,8 @@ class RadioStats:
     link_lost: str | None  # cflib's message if the link dropped, else None
     heartbeats_sent: int = 0  # emergency-stop-watchdog notifications
     latency_ms: float | None = None  # cflib's ping round trip (p95), where the radio measures it
+    imu_samples: int = 0  # accelerometer samples received (0 without the IMU block)
+    imu_late: int = 0  # lockstep ticks that gave up waiting for an emitted accelerometer sample
 
 
 class CflibRadio:
@@ -68,11 +75,14 @@ class CflibRadio:
         clock: Callable[[], float] = time.monotonic,
         advance: Callable[[float], None] | None = None,
         heartbeat_hz: float = 0.0,
+        imu_log: bool = False,
     ) -> None:
         """``clock`` is the flight clock (stats timestamps; lockstep shutdown timing).
         ``advance(t)`` steps a lockstep simulator to ``t`` so the shutdown zero stream spans
         simulated time; without it the zeros go out back to back. ``heartbeat_hz`` > 0 sends
-        the emergency-stop-watchdog heartbeat where the firmware supports it (0 = never)."""
+        the emergency-stop-watchdog heartbeat where the firmware supports it (0 = never).
+        ``imu_log`` starts the accelerometer log block at connect (a firmware without it: a
+        warning in ``imu_note``, and ``imu`` stays None)."""
         if not tx_rate_hz > 0:
             raise ValueError(f"tx_rate_hz must be positive, got {tx_rate_hz}")
         if heartbeat_hz < 0:
@@ -108,6 +118,9 @@ class CflibRadio:
         self._hb_enabled = False  # decided at connect: requested and supported by the firmware
         self._hb_cadence = Cadence(self._hb_period)
         self._heartbeats_sent = 0
+        self._imu_requested = imu_log
+        self.imu: ImuLog | None = None  # the accelerometer block, once running
+        self.imu_note: str | None = None  # why there is no IMU although it was asked for
 
     @property
     def cf(self) -> Crazyflie | None:
@@ -153,6 +166,9 @@ class CflibRadio:
         self._cf = cf
         try:
             self._prepare(cf, deadline)
+            if self._imu_requested:
+                self.imu, self.imu_note = start_imu_log(self.uri, cf, deadline, lockstep=self.lockstep,
+                                                        clock=self._clock)
         except BaseException:
             self._cf = None
             self._shut = True
@@ -183,11 +199,18 @@ class CflibRadio:
     def set_clock(self, clock: Callable[[], float]) -> None:
         """Switch to a new flight clock (the hardware flight clock starts after the pre-flight)."""
         self._clock = clock
+        if self.imu is not None:
+            self.imu.set_clock(clock)
 
     def _on_link_lost(self, uri: str, message: str) -> None:
         self._link_lost = first_line(message)
 
     # --- the loop's side: latest-value slots -------------------------------------------------
+
+    def latest_imu(self, now: float) -> "ImuSample | None":
+        """The newest accelerometer sample measured at or before ``now`` (None without the block)."""
+        imu = self.imu
+        return imu.latest(now) if imu is not None else None
 
     def set_setpoint(self, sp: "AttitudeSetpoint") -> None:
         self._setpoint = (sp.roll_deg, sp.pitch_deg, sp.yawrate_deg, int(sp.thrust))
@@ -344,6 +367,7 @@ class CflibRadio:
         self.shutdown()
 
     def stats(self) -> RadioStats:
+        imu = self.imu.stats() if self.imu is not None else None
         return RadioStats(
             setpoints_sent=self._setpoints_sent,
             extposes_sent=self._extposes_sent,
@@ -352,6 +376,8 @@ class CflibRadio:
             last_error=self._last_error,
             link_lost=self._link_lost,
             heartbeats_sent=self._heartbeats_sent,
+            imu_samples=imu.samples if imu is not None else 0,
+            imu_late=imu.late if imu is not None else 0,
         )
 
 

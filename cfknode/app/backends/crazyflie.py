@@ -157,6 +157,7 @@ def connect_robot(cfg: Config, robot: Robot, mocap: MotioncaptureSource, *, cons
             params=firmware_params(cfg, robot),
             telemetry_hz=hw.telemetry_hz,
             reboot_after_heartbeat=hw.reboot_after_heartbeat,
+            imu_log=cfg.radio.imu_log,
         )
         radio.connect(hw.radio_connect_timeout)
         settle_until = time.monotonic() + hw.preflight_settle
@@ -300,6 +301,9 @@ class CrazyflieBackend:
         self.config, self.clock, self.mocap, self.radio = hw.config, hw.clock, hw.mocap, hw.radio
         self.start_position = hw.start_position
         self.events = tuple(hw.preflight.events())
+        self.imu = hw.radio.imu  # the accelerometer log block; None if off or the firmware lacks it
+        if hw.radio.imu_note is not None:
+            self.events += ({"level": "warning", "text": hw.radio.imu_note, "source": "radio"},)
         self._link = radio_link_status(hw.radio)
 
     @classmethod

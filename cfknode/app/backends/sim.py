@@ -35,6 +35,9 @@ class SimulatorBackend:
                  clock: WallClock | SimClock, radio: CflibRadio) -> None:
         self.config, self.sim, self.faults = cfg, sim, faults
         self.mocap, self.clock, self.radio = mocap, clock, radio
+        self.imu = radio.imu  # the accelerometer through the real log path (None: radio.imu_log off, or no TOC)
+        if radio.imu_note is not None:
+            self.events = ({"level": "warning", "text": radio.imu_note, "source": "radio"},)
         self.start_position = np.asarray(cfg.sim.initial_position, dtype=float)
         link = radio_link_status(radio)
         self._link = worst_link(link, faults.link_status) if faults.link_status is not None else link
@@ -55,6 +58,7 @@ class SimulatorBackend:
             # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.
             advance=sim.step_to if clock.lockstep else None,
             rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
+            imu_log=cfg.radio.imu_log,
         )
         stepper = None
         try:

@@ -102,7 +102,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "q_true": _vec(4, "simulator: true attitude, w x y z"),
          "fresh": _bool("a new mocap frame arrived this tick"), "phase": _str("the supervisor's state this tick"),
          "frame_t": _num("the newest mocap frame's time, latency taken off, s"),
-         "frame_p": _vec(3, "the newest mocap frame's position, unfiltered, m")},
+         "frame_p": _vec(3, "the newest mocap frame's position, unfiltered, m"),
+         "imu_t": _num("the newest accelerometer sample's time, flight clock, s (null: none yet)"),
+         "imu_f": _vec(3, "that sample's specific force, body frame, m/s^2 (about 0 0 9.81 at hover)")},
     ),
     ChannelSpec(
         "/reference", "cfknode.Reference", "Reference at the tick time.",
