@@ -114,6 +114,9 @@ class LoopAdaptation:
             thrust = value
         if thrust <= 0.0:
             return None
+        e = self.layer.estimate
+        self.lags.observe_specific_force(float(imu.specific_force[2]), 1.0 / e.thrust_scale, self.vehicle.mass,
+                                         learn=not (e.stepping or self._sat[0]))
         return imu.t, float(imu.specific_force[2]) * self.vehicle.mass / thrust
 
     def flown_acc(self, bz: np.ndarray) -> np.ndarray:

@@ -34,6 +34,8 @@ class ThrustLagBank:
         self._ms = np.zeros(len(self.lags))  # (m/s)^2, running mean square of the frame misses
         self._frames = 0
         self._v_prev: float | None = None
+        self._imu_ms = np.zeros(len(self.lags))  # (m/s^2)^2, running mean square of the accelerometer misses
+        self._imu_samples = 0
 
     @property
     def lag_s(self) -> float:
@@ -55,6 +57,8 @@ class ThrustLagBank:
             self.switches += 1
             self._ms[:] = 0.0
             self._frames = 0
+            self._imu_ms[:] = 0.0
+            self._imu_samples = 0
 
     def sent(self, thrust: float) -> None:
         """A command's thrust [N] was sent this tick."""
@@ -83,11 +87,28 @@ class ThrustLagBank:
         k = 1.0 / min(self._frames, MISS_FRAMES)
         self._ms = (1.0 - k) * self._ms + k * self._miss * self._miss
         self._miss[:] = 0.0
-        if self._frames >= MISS_FRAMES // 2:
-            best = int(np.argmin(self._ms))
-            if best != self.choice and self._ms[best] < SWITCH_MARGIN * self._ms[self.choice]:
-                self.choice = best
-                self.switches += 1
+        if self._frames >= MISS_FRAMES // 2 and self._imu_samples == 0:
+            self._switch_to_best(self._ms)
+
+    def observe_specific_force(self, f_z: float, theta: float, mass: float, learn: bool = True) -> None:
+        """An accelerometer sample: the specific force along the body axis ``f_z`` [m/s^2] is the acting thrust
+        times ``theta`` (nominal / true mass) over the nominal ``mass``. A direct reading of the thrust, where
+        the frames give its second integral: on a quiet circle the frame-to-frame velocity misses were all noise
+        and no lag won by the margin. Once samples come, they alone choose the lag."""
+        if self._acting is None or not learn or not math.isfinite(f_z):
+            return
+        miss = f_z - theta * self._acting / mass
+        self._imu_samples += 1
+        k = 1.0 / min(self._imu_samples, MISS_FRAMES)
+        self._imu_ms = (1.0 - k) * self._imu_ms + k * miss * miss
+        if self._imu_samples >= MISS_FRAMES // 2:
+            self._switch_to_best(self._imu_ms)
+
+    def _switch_to_best(self, ms: np.ndarray) -> None:
+        best = int(np.argmin(ms))
+        if best != self.choice and ms[best] < SWITCH_MARGIN * ms[self.choice]:
+            self.choice = best
+            self.switches += 1
 
     def forget_velocity(self) -> None:
         """Blind or off the air: the next velocity starts a new frame chain."""

@@ -114,3 +114,27 @@ def test_the_lag_bank_picks_the_motor_lag_that_explains_the_climb() -> None:
         bank.observe(v + (0.005 * rng.standard_normal() if fresh else 0.0), 1.0, mass, G, 0.0, fresh)
     assert bank.lag_s == 0.08
     assert bank.switches >= 1
+
+
+def test_the_accelerometer_tells_the_lag_where_the_frames_cannot() -> None:
+    """A quiet hover's thrust jitter: frame-to-frame velocity misses are noise for every lag, but the specific
+    force reads the acting thrust itself (0.3 m/s^2 of noise per sample), so the 150 ms motor is found and a
+    15 ms one kept."""
+    from cfknode.flight.thrust_lag import ThrustLagBank
+
+    for true_lag in (0.15, 0.015):
+        rng = np.random.default_rng(5)
+        mass, dt = 0.03, 1.0 / RATE
+        bank = ThrustLagBank((0.015, 0.04, 0.08, 0.15), 0.015, RATE)
+        acting, v, jitter = mass * G, 0.0, 0.0
+        for i in range(int(4.0 * RATE)):
+            jitter = 0.9 * jitter + 0.03 * rng.standard_normal()  # a controller answering mocap noise
+            sent = mass * G * (1.0 + jitter)
+            bank.sent(sent)
+            acting += (1.0 - np.exp(-dt / true_lag)) * (sent - acting)
+            v += dt * (acting / mass - G)
+            fresh = i % FRAME_TICKS == 0
+            bank.observe(v + (0.01 * rng.standard_normal() if fresh else 0.0), 1.0, mass, G, 0.0, fresh)
+            if i % FRAME_TICKS == 2:
+                bank.observe_specific_force(acting / mass + 0.3 * rng.standard_normal(), 1.0, mass)
+        assert bank.lag_s == true_lag, true_lag
