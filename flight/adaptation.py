@@ -261,6 +261,8 @@ class FastAdaptation:
         self._imu_step = False  # the step being tracked was raised by the accelerometer
         self._imu_sigma = 0.0  # the vertical offset when it was
         self._fit_frames = 0  # frames after the onset in the step's latest height fit
+        self._theta_at_alarm = 1.0  # 1 / thrust scale when the frames' detector raised its alarm
+        self._vetoed = False  # the accelerometer saw no step in this hold of the frames' detector
         self.resets += 1
 
     def update(
@@ -393,26 +395,33 @@ class FastAdaptation:
                 self._onset_hint = t - span
                 self._fit_frames = 0
                 self._imu_step = False
-            self._step_until = t + self.s.step_hold_s
+                self._vetoed = False
+                self._theta_at_alarm = 1.0 / self.estimate.thrust_scale
+            if not (stepping and self._vetoed):
+                self._step_until = t + self.s.step_hold_s
             self._cusum = (0.0, 0.0)
             self._run = [[0.0, 0.0], [0.0, 0.0]]
             return True
         return stepping
 
     def _imu_sample(self, t: float, t_sample: float, theta: float) -> None:
-        """An accelerometer sample: a step it sees starts the step's tracking at once, from its onset."""
-        stepping = t < self._step_until
+        """An accelerometer sample: a step it sees starts the step's tracking at once, from its onset. A hold the
+        frames' detector raised does not stop it: that alarm can be a false one just before a real step (a
+        0.5x step 76 ms after one went unseen, and the fit searched for its onset at the false alarm's)."""
+        stepping = t < self._step_until and self._imu_step
         onset = self._imu.sample(t_sample, theta, 1.0 / self.estimate.thrust_scale, stepping)
         if onset is None:
             return
         self._last_alarm = t
-        self.steps += 1
+        self.steps += int(t >= self._step_until)  # within a hold of the frames' detector: the same step, now seen
         self.imu_steps += 1
         self._onset_hint = onset
         self._step_until = t + self.s.step_hold_s
         self._cusum = (0.0, 0.0)
         self._run = [[0.0, 0.0], [0.0, 0.0]]
         self._fit_frames = 0
+        self._fitted = None  # a fit around another onset says nothing about this one
+        self._vetoed = False
         self._imu_step = True
         self._imu_sigma = float(self._out[2])
 
@@ -426,6 +435,13 @@ class FastAdaptation:
             return None
         if fresh:
             got = self._fit.estimate(self._onset_hint, self._frame_dt)
+            if (got is not None and got.significant and not self._imu_step
+                    and self._imu.sees_no_change(self._onset_hint, self._theta_at_alarm)):
+                # The frames' alarm and the accelerometer sees no step: a glitch, or an error that was there
+                # before (a mass still being learned). The mass stays, and the hold is not extended by more
+                # of the frames' alarms, so the slow observer learns such an error once the hold ends.
+                got = replace(got, theta=self._theta_at_alarm, significant=False)
+                self._vetoed = True
             if got is not None:
                 self._fitted = (float(np.clip(1.0 / got.theta, *self.s.thrust_scale_bounds)), got.sigma, got.significant)
                 self.fits += int(got.significant)

@@ -20,6 +20,7 @@ ALARM = 6.0  # standard deviations two successive samples must exceed, on the sa
 ALARM_SINGLE = 12.0  # ... or one sample
 NOISE_FLOOR = 0.005  # theta's noise is taken as at least this (0.5 %: a simulated IMU without noise)
 POST_SAMPLES = 8  # samples after the onset kept for the step's theta
+RECENT_SAMPLES = 16  # samples kept to check a step the frames saw (160 ms)
 
 
 class ImuStepDetector:
@@ -34,6 +35,7 @@ class ImuStepDetector:
         self._pending: tuple[float, float, float] | None = None  # (t, theta, deviation) of a sample beyond it
         self._post: deque[float] = deque(maxlen=POST_SAMPLES)
         self._onset: float | None = None
+        self._recent: deque[tuple[float, float]] = deque(maxlen=RECENT_SAMPLES)  # (t, theta less the offset)
         self.alarms = 0
 
     @property
@@ -44,6 +46,7 @@ class ImuStepDetector:
         """One new sample at ``t``: its theta and the layer's. Returns the onset time when it raises an alarm."""
         if not math.isfinite(theta_meas) or theta_meas <= 0.0:
             return None
+        self._recent.append((t, theta_meas - self._bias))
         if stepping:  # a step is being tracked: its samples build its theta, and teach no noise level
             if self._onset is not None and t > self._onset:
                 self._post.append(theta_meas - self._bias)
@@ -81,6 +84,18 @@ class ImuStepDetector:
         k = 1.0 / min(self._n, WARMUP_SAMPLES)
         self._bias += k * (e - self._bias)
         self._var = (1.0 - k) * self._var + k * (e - self._bias) ** 2
+
+    def sees_no_change(self, since: float, theta_before: float) -> bool:
+        """Whether the samples since ``since`` show theta where it was (``theta_before``), within 3 standard
+        errors: a step the frames' detector fitted from a few frames that the accelerometer does not see.
+        False before the noise level is learned or with fewer than 2 samples."""
+        if self._n < WARMUP_SAMPLES:
+            return False
+        after = [x for t, x in self._recent if t > since]
+        if len(after) < 2:
+            return False
+        mean = sum(after) / len(after)
+        return abs(mean - theta_before) < 3.0 * self.noise / math.sqrt(len(after))
 
     def theta(self) -> float | None:
         """The step's theta from the samples since the onset (their median, less the samples' usual offset from

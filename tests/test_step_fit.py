@@ -104,10 +104,11 @@ def layer(**kw: Any) -> FastAdaptation:
 
 
 def hover(lay: FastAdaptation, seconds: float, theta_at: Callable[[float], float], noise: float,
-          seed: int, imu_noise: float | None = None) -> dict[str, Any]:
+          seed: int, imu_noise: float | None = None, glitch: tuple[float, float, float] | None = None) -> dict[str, Any]:
     """The layer holding a vertical point mass at 1 m (a PD on the frames, thrust from the estimated mass);
     the layer sees mocap heights at 100 Hz with ``noise`` m and a velocity differenced from them, and with
-    ``imu_noise`` (m/s^2) an accelerometer at 100 Hz between the frames."""
+    ``imu_noise`` (m/s^2) an accelerometer at 100 Hz between the frames; ``glitch`` (start, end, dz): the
+    frames read dz off in that span (a mocap glitch the accelerometer does not feel)."""
     rng = np.random.default_rng(seed)
     imu_rng = np.random.default_rng(seed + 1000)
     dt = 1.0 / RATE
@@ -124,6 +125,8 @@ def hover(lay: FastAdaptation, seconds: float, theta_at: Callable[[float], float
         fresh = i % FRAME_TICKS == 0
         if fresh:
             measured = z + noise * rng.standard_normal()
+            if glitch is not None and glitch[0] <= t < glitch[1]:
+                measured += glitch[2]
             seen_v = 0.5 * seen_v + 0.5 * (measured - last_z) / (FRAME_TICKS * dt)
             seen_z = last_z = measured
         else:
@@ -196,3 +199,19 @@ def test_the_step_estimate_from_samples_takes_their_usual_offset_off() -> None:
         onset = onset if got is None else got
     assert onset is not None and 1.99 <= onset <= 2.01
     assert abs(det.theta() - 0.75) < 0.02
+
+
+def test_the_accelerometer_vetoes_a_glitch_and_sees_a_step_inside_the_frames_hold() -> None:
+    """A mocap glitch raises the frames' alarm; the accelerometer feels nothing, so no step is fitted. And a
+    real step 70 ms later, inside that alarm's hold, is seen by the accelerometer with its own onset (the
+    fit searched for it at the glitch's)."""
+    glitch = (2.93, 2.95, 0.004)
+    lay = layer()
+    quiet = hover(lay, 3.6, lambda t: 1.0, 3e-4, seed=4, imu_noise=0.3, glitch=glitch)
+    assert quiet["alarms"] and quiet["alarms"][0] < 2.97 and lay.imu_steps == 0  # the frames' alarm only
+    assert float(np.max(np.abs(quiet["scale"] - 1.0))) < 0.03
+    lay = layer()
+    step = hover(lay, 3.6, lambda t: 1.0 if t < 3.0 else 0.5, 3e-4, seed=4, imu_noise=0.3, glitch=glitch)
+    assert lay.imu_steps == 1
+    after = step["scale"][int(3.02 * RATE):int(3.6 * RATE)]
+    assert np.all(np.abs(after - 0.5) < 0.03)
