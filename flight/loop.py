@@ -154,6 +154,15 @@ async def fly(parts: FlightParts) -> FlightRecord:
                 except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
                     fault("the clock (the simulator in lockstep)", exc, ERROR_STOP)
                     break
+                # Read before the tick's timer starts: in lockstep the radio waits here for the simulator's
+                # log packets to cross cflib's thread, which is the simulation's time, not the tick's.
+                imu_sample = None
+                if imu is not None:
+                    try:
+                        imu_sample = imu.latest(now)
+                    except Exception as exc:  # noqa: BLE001 - fly on without it, as a flight with no IMU
+                        imu = None
+                        fault("the IMU source", exc, ERROR_RECORD)
                 start = time.perf_counter()
                 try:
                     pose = parts.mocap.latest(now)
@@ -178,11 +187,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                         fault("the estimator", exc, ERROR_STOP)
                         est = None
                 if est is not None and imu is not None:
-                    try:
-                        est = dataclasses.replace(est, imu=imu.latest(now))
-                    except Exception as exc:  # noqa: BLE001 - fly on without it, as a flight with no IMU
-                        imu = None
-                        fault("the IMU source", exc, ERROR_RECORD)
+                    est = dataclasses.replace(est, imu=imu_sample)
                 if fresh:
                     log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
                                               "stamp": pose.t})
