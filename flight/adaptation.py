@@ -387,16 +387,11 @@ class FastAdaptation:
             if not stepping:
                 if t - self._step_until < REARM_S:
                     self._threshold_scale = min(2.0 * self._threshold_scale, MAX_THRESHOLD_SCALE)
-                self._last_alarm = t
-                self.steps += 1
                 dv, span = self._run[side]
                 if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
                     self._jump = dv / span
-                self._onset_hint = t - span
-                self._fit_frames = 0
-                self._imu_step = False
-                self._vetoed = False
-                self._theta_at_alarm = 1.0 / self.estimate.thrust_scale
+                self._start_step(t, t - span, by_imu=False)
+                self.steps += 1
             if not (stepping and self._vetoed):
                 self._step_until = t + self.s.step_hold_s
             self._cusum = (0.0, 0.0)
@@ -412,18 +407,23 @@ class FastAdaptation:
         onset = self._imu.sample(t_sample, theta, 1.0 / self.estimate.thrust_scale, stepping)
         if onset is None:
             return
-        self._last_alarm = t
         self.steps += int(t >= self._step_until)  # within a hold of the frames' detector: the same step, now seen
         self.imu_steps += 1
-        self._onset_hint = onset
+        self._start_step(t, onset, by_imu=True)
         self._step_until = t + self.s.step_hold_s
         self._cusum = (0.0, 0.0)
         self._run = [[0.0, 0.0], [0.0, 0.0]]
-        self._fit_frames = 0
         self._fitted = None  # a fit around another onset says nothing about this one
+
+    def _start_step(self, t: float, onset: float, by_imu: bool) -> None:
+        """What either detector's alarm sets: the onset the fit searches near, and what the hold starts from."""
+        self._last_alarm = t
+        self._onset_hint = onset
+        self._fit_frames = 0
         self._vetoed = False
-        self._imu_step = True
+        self._imu_step = by_imu
         self._imu_sigma = float(self._out[2])
+        self._theta_at_alarm = 1.0 / self.estimate.thrust_scale
 
     def _refit(self, stepping: bool, fresh: bool) -> tuple[float, float, bool] | None:
         """While a step is tracked with heights, refined each frame: (thrust scale, offset before the onset,
