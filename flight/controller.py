@@ -75,6 +75,9 @@ class TickInfo:
     model_version: int
     supervisor_state: str = ""  # the safety supervisor's state after this tick, when there is one
     saturated: bool = False  # the command was cut by the thrust clamp or the tilt limit (fast adaptation only)
+    # The fast layer's estimate this tick (an ``AdaptationEstimate``; None without a layer): the learner does
+    # not train on the layer's own transients (a step being tracked, a mass still being learned).
+    layer: Any = None
 
 
 class TickObserver(Protocol):
@@ -177,7 +180,8 @@ class Controller:
         if self.observers:
             version = self.model.version if self.model is not None else 0
             self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,
-                                     time.perf_counter() - start, solve_s, False, version, saturated=saturated)
+                                     time.perf_counter() - start, solve_s, False, version, saturated=saturated,
+                                     layer=adapt.estimate if adapt is not None else None)
         return command
 
     def publish(self, **tick: Any) -> None:

@@ -28,6 +28,7 @@ class Tick:
     model_version: int = 0
     compute_s: float = 0.0
     supervisor_state: str = ""
+    layer: Any = None  # the fast layer's AdaptationEstimate, when one flies
 
 
 class ListLog:

@@ -6,9 +6,12 @@ import math
 import subprocess
 import sys
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from cfknode.flight.adaptation import AdaptationEstimate
 from cfknode.flight.learning.gate import GateLimits, gate_pairs, one_step_rmse, operating_envelope, run_gate
 from cfknode.flight.learning.windows import WindowRecorder
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
@@ -110,6 +113,24 @@ def test_recorder_starts_in_the_air_and_breaks_on_gaps() -> None:
     assert rec.discarded == 1
 
 
+def layer(scale: float = 1.0, offset: tuple[float, float, float] = (0.0, 0.0, 0.0), stepping: bool = False) -> AdaptationEstimate:
+    return AdaptationEstimate(np.asarray(offset, dtype=float), scale, np.ones(3), stepping=stepping)
+
+
+def test_recorder_does_not_train_on_the_fast_layer_s_transient() -> None:
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
+    # The layer still learning the mass (1.00 -> 1.05 over the window): not sent, counted.
+    moving = [rec.add(replace(tick(k / RATE), layer=layer(scale=1.0 + 0.05 * k / 100))) for k in range(101)]
+    assert all(w is None for w in moving) and rec.unsettled == 1 and rec.windows == 0
+    # Settled (a 0.5 % wander): the next window is trained on.
+    settled = [rec.add(replace(tick((101 + k) / RATE), layer=layer(scale=1.05 + 0.005 * (k % 2)))) for k in range(101)]
+    assert settled[-1] is not None and rec.windows == 1
+    # A tick while the layer tracks a step ends the run, like a saturated one.
+    rec.add(replace(tick(202 / RATE), layer=layer(scale=1.05)))
+    rec.add(replace(tick(203 / RATE), layer=layer(scale=1.05, stepping=True)))
+    assert rec.discarded == 1
+
+
 def test_recorder_fresh_data_and_long_runs() -> None:
     rec = WindowRecorder(t_col=0.25, rate_hz=RATE, keep_s=1.0, ground_z=0.0)
     for k in range(2000):  # 5 s: the buffer compacts several times
@@ -151,6 +172,32 @@ def test_gate_accepts_a_better_candidate_and_rejects_a_worse_one() -> None:
 
     same = run_gate(good_file, good, good, fresh, x, u, limits())
     assert not same.accepted  # "better than the model now flying", not as good
+
+
+def test_beside_the_fast_layer_the_gate_judges_only_what_varies_and_asks_for_a_margin() -> None:
+    # v' = u + (0.3 - 0.8 v_x) in x: a constant the layer holds anyway, and a drag-like term it cannot.
+    rng = np.random.default_rng(1)
+    n = 628  # one period of the x command: the velocity swings about 0
+    t = np.arange(n) / RATE
+    u = np.stack([0.8 * np.cos(4 * t) - 0.3, 0.3 * np.cos(2 * t), 0.2 * np.sin(5 * t)], axis=1)
+    v = np.zeros((n, 3))
+    drag = np.diag([-0.8, 0.0, 0.0])
+    for i in range(n - 1):
+        v[i + 1] = v[i] + (u[i] + [0.3, 0.0, 0.0] + drag @ v[i]) / RATE
+    x = np.concatenate((np.cumsum(v, axis=0) / RATE, v + rng.normal(scale=2e-5, size=v.shape)), axis=1)
+    fresh = gate_pairs(t, x, u, filter_hz=0.0)
+    beside = replace(limits(), constant_free=True, min_improvement=0.05)
+    const_file = constant_residual_model([0.3, 0.0, 0.0])
+    const = ResidualQueue.from_model_file(const_file)
+    # Alone, learning the constant is a better model; beside the layer, it adds nothing.
+    assert run_gate(const_file, const, None, fresh, x, u, limits()).accepted
+    verdict = run_gate(const_file, const, None, fresh, x, u, beside)
+    assert not verdict.accepted and "data by 5%" in verdict.reason and "without constants" in verdict.reason
+    assert verdict.rmse_candidate == pytest.approx(verdict.rmse_current, rel=1e-6)
+    # The drag is what it keeps.
+    drag_file = linear_residual_model(drag, np.zeros((3, 3)))
+    kept = run_gate(drag_file, ResidualQueue.from_model_file(drag_file), None, fresh, x, u, beside)
+    assert kept.accepted and kept.rmse_candidate < 0.5 * kept.rmse_current
 
 
 def test_gate_rejects_non_finite_and_unbounded_models() -> None:

@@ -98,7 +98,9 @@ class Flight:
 
 
 def make(answer, **online: Any) -> tuple[Flight, OnlineLearner, ScriptedTrainer, ListLog, ModelSlot]:
-    cfg = load_config(overrides={"online.enabled": True, **{f"online.{k}": v for k, v in online.items()}})
+    # No fast layer flies here: the gate judges whole models, constants included.
+    cfg = load_config(overrides={"online.enabled": True, "controller.adaptation": "none",
+                                 **{f"online.{k}": v for k, v in online.items()}})
     slot, log, trainer = ModelSlot(None, version=0), ListLog(), ScriptedTrainer(answer)
     learner = OnlineLearner(replace(learner_settings(cfg, lockstep=False), filter_hz=0.0), slot, trainer, log)
     return Flight(learner, slot), learner, trainer, log, slot

@@ -100,8 +100,10 @@ def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     x, u = operating_envelope(1.0 if speed is None else speed, bounds.lower, bounds.upper)
     o = cfg.online
+    beside_layer = cfg.controller.adaptation in ("dob", "l1")  # a layer that estimates an additive offset
     return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
-                      envelope_from_data=speed is None)
+                      envelope_from_data=speed is None, constant_free=beside_layer,
+                      min_improvement=o.gate_layer_margin if beside_layer else 0.0)
 
 
 @contextlib.contextmanager

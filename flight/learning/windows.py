@@ -15,6 +15,10 @@ from cfknode.models.trainer_process import Window
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
 MIN_HEIGHT = 0.1  # m above the ground: ground effect and contact are not the model's business
 ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks were not
+# A window over which the fast layer's mass estimate moved more than this (relative) is the layer's transient,
+# not the model's error: a network trained on it holds part of the mass the layer is still learning, and the two
+# then share it (thrust map -15 %: the mass stalled at 1.06 of nominal instead of 1.18, 5x the layer's MSE).
+SETTLING_SPAN = 0.01
 
 
 class TickLike(Protocol):
@@ -49,12 +53,14 @@ class WindowRecorder:
         self._t = np.empty(cap)
         self._x = np.empty((cap, 6))
         self._u = np.empty((cap, 3))
+        self._s = np.ones(cap)  # the fast layer's thrust scale at each tick
         self._n = 0  # ticks in the run buffer
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
         self._ground = ground_z
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
+        self.unsettled = 0  # full windows not trained on: the fast layer's mass was still moving (SETTLING_SPAN)
         self.last_added = False  # whether the newest tick joined the run (the model monitor follows the run)
 
     def add(self, tick: TickLike) -> Window | None:
@@ -68,6 +74,7 @@ class WindowRecorder:
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
             or getattr(tick, "saturated", False)
+            or getattr(getattr(tick, "layer", None), "stepping", False)  # the layer is tracking a step
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + MIN_HEIGHT)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
@@ -83,6 +90,8 @@ class WindowRecorder:
         self._x[i, 0:3] = est.p
         self._x[i, 3:6] = est.v
         self._u[i] = tick.acc
+        layer = getattr(tick, "layer", None)
+        self._s[i] = layer.thrust_scale if layer is not None else 1.0
         if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
             self._break()
             return None
@@ -92,6 +101,10 @@ class WindowRecorder:
         if tick.t - self._t[self._w0] < self.t_col - 1e-9:
             return None
         w0, self._w0 = self._w0, self._n
+        scale = self._s[w0 : self._n]
+        if float(scale.max() - scale.min()) > SETTLING_SPAN * float(scale.min()):
+            self.unsettled += 1
+            return None
         self.windows += 1
         return Window(self.windows, self._t[w0 : self._n].copy(), self._x[w0 : self._n].copy(),
                       self._u[w0 : self._n].copy(), tick.model_version)
@@ -122,6 +135,7 @@ class WindowRecorder:
         self._t[:keep] = self._t[start : self._n]
         self._x[:keep] = self._x[start : self._n]
         self._u[:keep] = self._u[start : self._n]
+        self._s[:keep] = self._s[start : self._n]
         self._w0 -= start
         self._n = keep
 
