@@ -43,6 +43,16 @@ def test_markdown_flags_failures_and_counts_wins():
     assert wins(results, ("mpc", "mpc+dob")) == {"mpc": 1, "mpc+dob": 1}
     md = markdown(results, ("mpc", "mpc+dob"), "cmd", "0", "quick", (LAB,))
     assert "**0.01**" in md and "0.001 GS" in md and "FAILED" in md and "mpc+dob on b / lab (GS)" in md
+    assert "| mpc | 0.03 | b / lab | none | 1 of 2 | 1 of 2 |" in md
+
+
+def test_near_ties_count_for_every_controller_within_the_margin():
+    results = [_run("a", "mpc", 0.0100), _run("a", "mpc+dob", 0.0101), _run("a", "online+dob", 0.0103),
+               _run("b", "mpc", 0.02), _run("b", "online+dob", 0.01), _run("b", "oracle", 0.001)]
+    controllers = ("mpc", "mpc+dob", "online+dob", "oracle")
+    assert wins(results, controllers) == {"mpc": 1, "mpc+dob": 0, "online+dob": 1, "oracle": 0}
+    # 1 % over the lowest is a near tie at 2 %, 3 % is not; the oracle is a reference, never counted.
+    assert wins(results, controllers, 0.02) == {"mpc": 1, "mpc+dob": 1, "online+dob": 1, "oracle": 0}
 
 
 def test_short_robustness_bench_runs_the_whole_stack(tmp_path):
