@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cfknode.flight.adaptation import AdaptationEstimate
 from cfknode.app.config import load_config
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.learner import OnlineLearner
@@ -86,13 +87,15 @@ class Flight:
         self.rng = np.random.default_rng(0)
         self.r = TRUE_R.copy()  # the plant's residual (a test may change the world mid-flight)
         self.state = "TRACK"  # the supervisor's state the ticks report
+        self.layer: Any = None  # the fast layer's estimate the ticks carry (None: no layer)
 
     def run(self, seconds: float, source: str = "mpc") -> None:
         for _ in range(int(round(seconds / PERIOD))):
             t = self.k * PERIOD
             u = np.array([0.3 * math.sin(5 * t), 0.2 * math.cos(4 * t), 2.0 + 0.3 * math.sin(3 * t)])
             est = Est(np.array([0.0, 0.0, 1.0 if self.k else 0.0]), self.v.copy())
-            self.learner.on_tick(Tick(t, est, u, source, self.slot.version, supervisor_state=self.state))
+            self.learner.on_tick(Tick(t, est, u, source, self.slot.version, supervisor_state=self.state,
+                                      layer=self.layer(t) if callable(self.layer) else self.layer))
             self.v = self.v + PERIOD * (u + self.r)
             self.k += 1
 
@@ -181,6 +184,16 @@ def test_a_model_the_world_changed_under_is_dropped_for_nominal() -> None:
     first_after = trainer.requests[-1]
     assert first_after.base is None and first_after.window.version == 2  # flown under nominal only
     assert slot.version == first_after.version  # and learning goes on from nominal
+
+
+def test_no_window_is_sent_while_the_fast_layer_is_still_learning_the_mass() -> None:
+    flight, learner, trainer, _, _ = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.layer = lambda t: AdaptationEstimate(np.zeros(3), 1.0 + 0.1 * min(t, 1.0), np.ones(3))  # moving for 1 s
+    flight.run(1.0)
+    assert trainer.requests == [] and learner.summary_fields()["windows_unsettled"] == 1
+    flight.run(0.6)  # the window closing at 1.005 s still moved; the next one, settled at 1.1, is trained on
+    assert len(trainer.requests) == 1 and learner.summary_fields()["windows_unsettled"] == 2
+    assert trainer.requests[0].window.t0 > 1.0
 
 
 def test_a_candidate_trained_on_a_dropped_model_is_rejected_as_stale() -> None:

@@ -94,6 +94,7 @@ class LearnerReports:
             "windows_superseded": s.windows_superseded,
             "windows_stale": s.windows_stale,
             "partial_windows_discarded": self.recorder.discarded,
+            "windows_unsettled": self.recorder.unsettled,
             "swap_median_ms": _ms(np.median(s.swap_s)) if s.swap_s else None,
             "swap_max_ms": _ms(max(s.swap_s)) if s.swap_s else None,
             "install_median_ms": _ms(np.median(s.install_s)) if s.install_s else None,

@@ -67,6 +67,7 @@ class WindowRecorder:
         """Record one tick; returns a window when this tick completes one."""
         self.last_added = False
         est = tick.est
+        layer = getattr(tick, "layer", None)  # the fast layer's estimate (None without a layer)
         if est is None:
             self._break()
             return None
@@ -74,7 +75,7 @@ class WindowRecorder:
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
             or getattr(tick, "saturated", False)
-            or getattr(getattr(tick, "layer", None), "stepping", False)  # the layer is tracking a step
+            or (layer is not None and layer.stepping)  # the layer is tracking a step
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + MIN_HEIGHT)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
@@ -90,7 +91,6 @@ class WindowRecorder:
         self._x[i, 0:3] = est.p
         self._x[i, 3:6] = est.v
         self._u[i] = tick.acc
-        layer = getattr(tick, "layer", None)
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
         if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
             self._break()
