@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from cfknode.flight.adaptation import AdaptationEstimate
-from cfknode.flight.learning.gate import GateLimits, gate_pairs, one_step_rmse, operating_envelope, run_gate
+from cfknode.flight.learning.gate import (GateLimits, gate_pairs, one_step_rmse, operating_envelope, rollout_rmse,
+                                         run_gate)
 from cfknode.flight.learning.windows import WindowRecorder
 from cfknode.models.modelfile import ModelFile, NetworkWeights, Normalisation
 from cfknode.models.residual_np import ResidualQueue
@@ -198,6 +199,49 @@ def test_beside_the_fast_layer_the_gate_judges_only_what_varies_and_asks_for_a_m
     drag_file = linear_residual_model(drag, np.zeros((3, 3)))
     kept = run_gate(drag_file, ResidualQueue.from_model_file(drag_file), None, fresh, x, u, beside)
     assert kept.accepted and kept.rmse_candidate < 0.5 * kept.rmse_current
+
+
+def test_rollout_error_accumulates_over_linked_pairs_and_stops_at_gaps() -> None:
+    r = np.array([0.0, 0.0, 2.0])
+    t, x, u = flown_data(r)
+    x[:, 3:6] = np.cumsum(np.vstack([np.zeros(3), (u[:-1] + r) / RATE]), axis=0)  # noise-free
+    pairs = gate_pairs(t, x, u, filter_hz=0.0)
+    true_model = ResidualQueue.from_model_file(constant_residual_model(r))
+    assert rollout_rmse(None, pairs, 1) == one_step_rmse(None, pairs)
+    assert rollout_rmse(true_model, pairs, 5) < 1e-12
+    # The missing 2 m/s^2 adds up over five 2.5 ms steps; a constant is all of it, so without constants 0.
+    assert rollout_rmse(None, pairs, 5) == pytest.approx(5 * 2.0 / RATE / math.sqrt(3), rel=1e-9)
+    assert rollout_rmse(None, pairs, 5, constant_free=True) < 1e-12
+    # 4 samples flown, 4 lost, and again: runs of 3 linked pairs, none of 5.
+    keep = np.arange(t.size) % 8 < 4
+    gappy = gate_pairs(t[keep], x[keep], u[keep], filter_hz=0.0)
+    assert math.isnan(rollout_rmse(None, gappy, 5))
+    assert rollout_rmse(None, gappy, 2) == pytest.approx(2 * 2.0 / RATE / math.sqrt(3), rel=1e-9)
+
+
+def test_over_several_steps_a_state_dependent_gain_stands_clear_of_velocity_noise() -> None:
+    # v' = u - 0.8 v_x with mocap-like velocity noise: over one 2.5 ms step the drag's share of the error
+    # is about the noise's; over five it adds up while the noise at the two ends does not.
+    rng = np.random.default_rng(3)
+    n = 628
+    t = np.arange(n) / RATE
+    u = np.stack([0.8 * np.cos(4 * t), 0.3 * np.cos(2 * t), 0.2 * np.sin(5 * t)], axis=1)
+    v = np.zeros((n, 3))
+    drag = np.diag([-0.8, 0.0, 0.0])
+    for i in range(n - 1):
+        v[i + 1] = v[i] + (u[i] + drag @ v[i]) / RATE
+    x = np.concatenate((np.cumsum(v, axis=0) / RATE, v + rng.normal(scale=2e-4, size=v.shape)), axis=1)
+    fresh = gate_pairs(t, x, u, filter_hz=0.0)
+    drag_q = ResidualQueue.from_model_file(linear_residual_model(drag, np.zeros((3, 3))))
+    one = rollout_rmse(drag_q, fresh, 1, True) / rollout_rmse(None, fresh, 1, True)
+    five = rollout_rmse(drag_q, fresh, 5, True) / rollout_rmse(None, fresh, 5, True)
+    assert five < 0.8 * one
+    beside = replace(limits(), constant_free=True, min_improvement=0.02, steps=5)
+    drag_file = linear_residual_model(drag, np.zeros((3, 3)))
+    assert run_gate(drag_file, drag_q, None, fresh, x, u, beside).accepted
+    const_file = constant_residual_model([0.3, 0.0, 0.0])
+    verdict = run_gate(const_file, ResidualQueue.from_model_file(const_file), None, fresh, x, u, beside)
+    assert not verdict.accepted and "without constants, over 5 steps" in verdict.reason
 
 
 def test_gate_rejects_non_finite_and_unbounded_models() -> None:

@@ -51,6 +51,7 @@ class OnlineConfig:
     gate_max_velocity_gain: float
     gate_max_cross_gain: float
     gate_layer_margin: float
+    gate_layer_steps: int
     trainer_timeout: float
     max_restarts: int
     start_time: float
@@ -178,6 +179,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
     ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
     ("online.gate_layer_margin", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("online.gate_layer_steps", lambda v: 1 <= v <= 400, "in 1..400"),
     ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
     ("online.max_restarts", lambda v: v >= 0, ">= 0"),
     ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),
