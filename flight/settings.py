@@ -66,6 +66,7 @@ class EstimatorConfig:
     position_std: float
     latency: float
     command_delay: float = 0.0  # s from a sent command to its acceleration; the plan starts that far ahead
+    attitude_lag: float = 0.0  # s, time constant from a commanded horizontal acceleration to the one flown; 0: at once
 
 
 @dataclass(frozen=True)

@@ -149,6 +149,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.adaptation_settings.thrust_lag_s", lambda v: v is None or 0 <= v <= 0.5, "null or in [0, 0.5] s"),
     ("estimator.latency", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
     ("estimator.command_delay", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
+    ("estimator.attitude_lag", lambda v: 0 <= v <= 1, "in [0, 1] s"),
     ("trajectory.radius", lambda v: v > 0, "> 0"),
     ("trajectory.speed", lambda v: v > 0, "> 0"),
     ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),

@@ -143,6 +143,7 @@ BOUNDS: dict[str, Bound] = {
     "sim.downwash.height": _b(0, 5, "m", open_low=True),
     "sim.downwash.radius": _b(0, 1, "m", open_low=True),
     "estimator.command_delay": _b(0, 0.3, "s"),
+    "estimator.attitude_lag": _b(0, 1, "s"),
     "fleet.size": _b(0, 16, "drones"),
     "fleet.min_separation": _b(0, 5, "m"),
     "fleet.hold_s": _b(0, 10, "s"),
