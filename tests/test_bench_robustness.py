@@ -55,6 +55,15 @@ def test_near_ties_count_for_every_controller_within_the_margin():
     assert wins(results, controllers, 0.02) == {"mpc": 1, "mpc+dob": 1, "online+dob": 1, "oracle": 0}
 
 
+def test_an_exact_tie_is_the_lowest_for_each_and_bold_for_each():
+    # The learner kept no model: online+dob flew as mpc+dob, to the last digit.
+    results = [_run("a", "mpc", 0.02), _run("a", "mpc+dob", 0.01), _run("a", "online+dob", 0.01)]
+    controllers = ("mpc", "mpc+dob", "online+dob")
+    assert wins(results, controllers) == {"mpc": 0, "mpc+dob": 1, "online+dob": 1}
+    md = markdown(results, controllers, "cmd", "0", "quick", (LAB,))
+    assert "| a | lab | 0.02 | **0.01** | **0.01** |" in md
+
+
 def test_short_robustness_bench_runs_the_whole_stack(tmp_path):
     assert set(CONTROLLERS) >= {"geometric", "mpc", "mpc+dob", "online", "online+dob"}
     args = ["bench", "robustness", "--cells", "mocap latency 25 ms,motor lag 80 ms", "--controllers", "mpc,mpc+dob",

@@ -17,6 +17,9 @@ LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def cfg(**kw) -> EstimatorConfig:
+    """The default estimator, except that the input given is the acceleration flown (no attitude lag), unless
+    the test sets ``attitude_lag``."""
+    kw.setdefault("attitude_lag", 0.0)
     return load_config(overrides={f"estimator.{k}": v for k, v in kw.items()}).estimator
 
 
@@ -105,6 +108,48 @@ def test_commanded_acceleration_removes_lag():
     assert rms(with_v) < 0.3 * rms(without_v)
     assert rms(with_p) < 1e-3
     assert rms(without_p) < 2e-3
+
+
+def test_attitude_lag_predicts_with_the_acceleration_flown() -> None:
+    """A vehicle whose horizontal acceleration is its command through a 0.17 s first-order lag (the attitude
+    loop): the filter told that lag tracks its velocity; fed the command as if it acted at once, it leads."""
+    tau, cmd = 0.17, lambda t: np.array([2.0 * np.sin(3.0 * t), 1.5 * np.cos(2.0 * t), -0.9 * np.sin(3 * t)])
+    dt = 1e-4
+    ts = np.arange(0.0, 4.2, dt)
+    a = np.zeros((ts.size, 3))
+    for i in range(1, ts.size):  # the flown acceleration: x, y lagged, z at once
+        a[i, :2] = a[i - 1, :2] + (1.0 - np.exp(-dt / tau)) * (cmd(ts[i - 1])[:2] - a[i - 1, :2])
+        a[i, 2] = cmd(ts[i])[2]
+    v = np.cumsum(a, axis=0) * dt
+    p = np.cumsum(v, axis=0) * dt
+
+    def motion(t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        i = min(int(round(t / dt)), ts.size - 1)
+        return p[i], v[i], cmd(t)  # the "acceleration" the test feeds is the command
+
+    # Without mocap noise, so what is left is the model's error alone.
+    _, lagged = fly(VelocityEstimator(cfg(attitude_lag=tau)), motion, 4.0, noise=0.0, use_acc=True)
+    _, at_once = fly(VelocityEstimator(cfg()), motion, 4.0, noise=0.0, use_acc=True)
+    assert rms(lagged[:, :2]) < 0.2 * rms(at_once[:, :2])
+    # z is not lagged (the motors are an order faster than the attitude loop): the same either way.
+    np.testing.assert_allclose(lagged[:, 2], at_once[:, 2], atol=1e-12)
+
+
+def test_attitude_lag_state_starts_again_at_reset() -> None:
+    est = VelocityEstimator(cfg(attitude_lag=0.17))
+    est.update(Pose(t=0.0, position=np.zeros(3), quaternion=LEVEL))
+    for j in range(1, 41):
+        s = est.predict(j * TICK, np.array([1.0, 0.0, 1.0]))
+    # 0.1 s of a 1 m/s^2 command through the lag, held over each tick: the flown acceleration after tick j
+    # is 1 - exp(-j TICK / tau), about 0.45 at 0.1 s; z at once.
+    k = 1.0 - np.exp(-TICK / 0.17)
+    flown = 1.0 - (1.0 - k) ** np.arange(1, 41)
+    assert s.v[0] == pytest.approx(TICK * flown.sum(), rel=1e-9)
+    assert s.v[2] == pytest.approx(0.1, rel=1e-9)
+    est.reset()
+    est.update(Pose(t=1.0, position=np.zeros(3), quaternion=LEVEL))
+    s = est.predict(1.0 + TICK, np.array([1.0, 0.0, 0.0]))
+    assert s.v[0] == pytest.approx(TICK * k, rel=1e-9)  # from rest again, not from the 0.45 before the reset
 
 
 def test_beats_finite_differences_with_known_input():

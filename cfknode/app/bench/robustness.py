@@ -257,7 +257,9 @@ def _fmt_recover(v: float | None) -> str:
 
 
 def wins(results: list[RunResult], controllers: tuple[str, ...], within: float = 0.0) -> dict[str, int]:
-    """Cells (cell x pattern) where each controller has the lowest MSE among the runs that did not fail.
+    """Cells (cell x pattern) where each controller has the lowest MSE among the runs that did not fail; an
+    exact tie counts for each (beside the fast layer the learner often keeps no model, and then flies as the
+    layer alone, to the last digit).
 
     ``within`` > 0 counts every controller within that fraction of the lowest instead (a near tie: on a
     plant with nothing to adapt to, the adaptive variants can at best match the exact model)."""
@@ -268,9 +270,6 @@ def wins(results: list[RunResult], controllers: tuple[str, ...], within: float =
         if not ok:
             continue
         best = min(ok, key=lambda r: r.mse)
-        if within <= 0.0:
-            out[best.controller] += 1
-            continue
         for r in ok:
             out[r.controller] += int(r.mse <= best.mse * (1.0 + within))
     return out
@@ -287,7 +286,8 @@ def markdown(results: list[RunResult], controllers: tuple[str, ...], command: st
         f"patterns {pats} (every cell and controller at the same height: no ground effect in the simulator). "
         f"Flags: G hit the ground (z < {GROUND_Z} m during the pattern), D diverged (geofence), "
         "S the supervisor ended the flight (not \"flight complete\"). Recovery: the longest time after a mass "
-        "step until the error is back under its pre-step level for 0.5 s. Lowest MSE of each row in bold.",
+        "step until the error is back under its pre-step level for 0.5 s. Lowest MSE of each row in bold "
+        "(an exact tie in bold for each).",
         "",
         "| cell | pattern | " + " | ".join(controllers) + " |",
         "|---|---|" + "---|" * len(controllers),
@@ -300,14 +300,14 @@ def markdown(results: list[RunResult], controllers: tuple[str, ...], command: st
     for cell, pat in keys:
         runs = [by.get((cell, pat, c)) for c in controllers]
         ok = [r for r in runs if r is not None and not r.failed]
-        best = min(ok, key=lambda r: r.mse).controller if ok else None
+        best = min(r.mse for r in ok) if ok else None
         cols = []
         for c, r in zip(controllers, runs):
             if r is None:
                 cols.append("")
                 continue
             text = f"{r.mse:.4g}"
-            text = f"**{text}**" if c == best else text
+            text = f"**{text}**" if r.mse == best and not r.failed else text
             flags = _flags(r)
             rec = _fmt_recover(r.recover_s)
             cols.append(text + (f" {flags}" if flags else "") + (f" ({rec})" if rec else ""))
