@@ -145,16 +145,6 @@ def test_recorder_fresh_data_and_long_runs() -> None:
 # --- one-step prediction and gate ---------------------------------------------------------------
 
 
-def test_one_step_prediction_is_exact_for_the_true_constant_residual() -> None:
-    r = np.array([0.0, 0.0, 2.0])
-    t, x, u = flown_data(r)
-    x[:, 3:6] = np.cumsum(np.vstack([np.zeros(3), (u[:-1] + r) / RATE]), axis=0)  # noise-free
-    pairs = gate_pairs(t, x, u, filter_hz=0.0)
-    true_model = ResidualQueue.from_model_file(constant_residual_model(r))
-    assert one_step_rmse(true_model, pairs) < 1e-12
-    assert one_step_rmse(None, pairs) == pytest.approx(2.0 / RATE / math.sqrt(3), rel=1e-9)
-
-
 def test_gate_accepts_a_better_candidate_and_rejects_a_worse_one() -> None:
     r = np.array([0.0, 0.0, 3.0])
     t, x, u = flown_data(r)
@@ -201,12 +191,14 @@ def test_beside_the_fast_layer_the_gate_judges_only_what_varies_and_asks_for_a_m
     assert kept.accepted and kept.rmse_candidate < 0.5 * kept.rmse_current
 
 
-def test_rollout_error_accumulates_over_linked_pairs_and_stops_at_gaps() -> None:
+def test_prediction_is_exact_for_the_true_constant_residual_and_accumulates_over_linked_pairs() -> None:
     r = np.array([0.0, 0.0, 2.0])
     t, x, u = flown_data(r)
     x[:, 3:6] = np.cumsum(np.vstack([np.zeros(3), (u[:-1] + r) / RATE]), axis=0)  # noise-free
     pairs = gate_pairs(t, x, u, filter_hz=0.0)
     true_model = ResidualQueue.from_model_file(constant_residual_model(r))
+    assert one_step_rmse(true_model, pairs) < 1e-12
+    assert one_step_rmse(None, pairs) == pytest.approx(2.0 / RATE / math.sqrt(3), rel=1e-9)
     assert rollout_rmse(None, pairs, 1) == one_step_rmse(None, pairs)
     assert rollout_rmse(true_model, pairs, 5) < 1e-12
     # The missing 2 m/s^2 adds up over five 2.5 ms steps; a constant is all of it, so without constants 0.
