@@ -2,8 +2,9 @@
 
 Checks, in order: finite weights; a bounded residual and plausible Jacobians on the recent data
 *and* the MPC's whole operating envelope (``GateLimits``); a lower one-step error than the flying
-model on fresh data it never saw (beside the fast layer: constants aside, over a few steps). ``gate_steps`` runs it in slices of a fraction of a
-millisecond, one per tick gap; ``run_gate`` runs it at once. Pure numpy: no torch here.
+model on fresh data it never saw (beside the fast layer: constants aside, over a few steps).
+``gate_steps`` runs it in slices of about a millisecond, one per tick gap; ``run_gate`` runs it at
+once. Pure numpy: no torch here.
 """
 
 from __future__ import annotations
