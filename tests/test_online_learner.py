@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cfknode.flight.adaptation import AdaptationEstimate
 from cfknode.app.config import load_config
+from cfknode.flight.adaptation import AdaptationEstimate
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.learner import OnlineLearner
 from cfknode.flight.learning.trainer_client import TrainerFault
