@@ -52,11 +52,12 @@ class LoopAdaptation:
 
     @property
     def estimate(self) -> AdaptationEstimate:
-        return self.layer.estimate
+        """What the controller flies with: the layer's estimate on the axes where it acts (``FastAdaptation.applied``)."""
+        return self.layer.applied
 
     def f_max(self) -> float:
-        """Specific thrust at the clamp [m/s^2] for the estimated mass."""
-        mass = self.vehicle.mass * self.layer.estimate.thrust_scale
+        """Specific thrust at the clamp [m/s^2] for the mass flown with."""
+        mass = self.vehicle.mass * self.layer.applied.thrust_scale
         return self.ctrl.max_thrust_fraction * self.vehicle.max_thrust / mass
 
     def off_air(self) -> None:
@@ -71,13 +72,13 @@ class LoopAdaptation:
             self._ground = float(est.p[2])
         if state in _RESET_STATES:
             self.off_air()
-            return self.layer.estimate
+            return self.layer.applied
         version = model.version if model is not None else 0
         if self._version is not None and version != self._version:
             self._rebase(model)
         self._version = version
         if not self._have_command:
-            return self.layer.estimate
+            return self.layer.applied
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
         x = np.concatenate((measured_position(est), est.v))
         bz = body_z(est.q)
@@ -91,11 +92,11 @@ class LoopAdaptation:
         acting = self.lags.acting_all()
         by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
         imu = self._imu_theta(now, est) if airborne else None
-        estimate = self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
-                                     u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
+        self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
+                          u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
-        return estimate
+        return self.layer.applied
 
     def _imu_theta(self, now: float, est: Any) -> tuple[float, float] | None:
         """(time, theta) of an accelerometer sample new since the last tick: the specific force along the body
@@ -128,8 +129,8 @@ class LoopAdaptation:
         return thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
-        """The MPC's residual: the model's, with the offset added to every stage's constant."""
-        offset = self.layer.estimate.offset
+        """The MPC's residual: the model's, with the applied offset added to every stage's constant."""
+        offset = self.layer.applied.offset
         if not self.layer.s.enabled:
             return model_residual
         if model_residual is None:
@@ -137,7 +138,7 @@ class LoopAdaptation:
         return ResidualLinearisation(model_residual.c + offset, model_residual.jx, model_residual.ju)
 
     def shaping(self) -> CommandShaping:
-        e = self.layer.estimate
+        e = self.layer.applied
         return CommandShaping(thrust_scale=e.thrust_scale, axis_gain=(float(e.axis_gain[0]), float(e.axis_gain[1])))
 
     def after_command(self, x0: np.ndarray, shaped: ShapedForce, thrust_cmd: int,
@@ -168,7 +169,8 @@ class LoopAdaptation:
 
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
-        return {**e.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode}
+        return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
+                "acts": [bool(a) for a in self.layer.acts], "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale}
 
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
@@ -176,7 +178,8 @@ class LoopAdaptation:
                 "adaptation_steps": self.layer.steps, "adaptation_thrust_lag_s": self.lags.lag_s,
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
-                "adaptation_rebases": self.layer.rebases}
+                "adaptation_rebases": self.layer.rebases,
+                "adaptation_acts_end": [bool(a) for a in self.layer.acts]}
 
 
 def measured_position(est: Any) -> np.ndarray:

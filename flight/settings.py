@@ -33,6 +33,10 @@ class AdaptationTuning:
     output_bandwidth_hz: float = 0.0  # dob: the vertical offset is the estimate low-passed again at this cut-off; 0 off
     output_bandwidth_xy_hz: float = 0.0  # the same for x and y
     offset_deadband: float = 0.0  # m/s^2: a horizontal offset well below it is shrunk toward 0; 0 off
+    engage_level: float = 0.0  # m/s^2: an axis's estimate acts once it is above this; 0 = always acts
+    engage_slow_level: float = float("inf")  # m/s^2: ... or once its slow mean is above this
+    engage_slow_s: float = 2.0  # s, time constant of that mean
+    release_s: float = 1.0  # s below half of engage_level before an axis lets go again
 
 
 @dataclass(frozen=True)

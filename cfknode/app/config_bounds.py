@@ -105,6 +105,10 @@ BOUNDS: dict[str, Bound] = {
     "controller.adaptation_settings.output_bandwidth_hz": _b(0, 50, "Hz"),
     "controller.adaptation_settings.output_bandwidth_xy_hz": _b(0, 50, "Hz"),
     "controller.adaptation_settings.offset_deadband": _b(0, 5, "m/s^2"),
+    "controller.adaptation_settings.engage_level": _b(0, 2, "m/s^2"),
+    "controller.adaptation_settings.engage_slow_level": _b(0, 2, "m/s^2", open_low=True),
+    "controller.adaptation_settings.engage_slow_s": _b(0, 60, "s", open_low=True),
+    "controller.adaptation_settings.release_s": _b(0, 60, "s"),
     "controller.adaptation_settings.thrust_lag_candidates_s": _b(0.001, 0.5, "s"),
     # Estimator.
     "estimator.process_accel_std": _b(0, 100, "m/s^2", open_low=True),

@@ -46,6 +46,10 @@ def _vec(n: int, description: str) -> dict[str, Any]:
     }
 
 
+def _flags(n: int, description: str) -> dict[str, Any]:
+    return {**_vec(n, description), "items": {"type": "boolean"}}
+
+
 def _bool(description: str) -> dict[str, Any]:
     return {"type": "boolean", "description": description}
 
@@ -189,8 +193,11 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
          "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),
          "saturated": _bool("the last command was cut by the thrust clamp or the tilt limit")},
-        {"f_max": _num("specific thrust at the clamp for the estimated mass, m/s^2"), "mode": _str("dob or l1"),
-         "stepping": _bool("a vertical step was detected and is tracked at the step bandwidth")},
+        {"f_max": _num("specific thrust at the clamp for the mass flown with, m/s^2"), "mode": _str("dob or l1"),
+         "stepping": _bool("a vertical step was detected and is tracked at the step bandwidth"),
+         "acts": _flags(3, "x, y, vertical: the estimate acts on the axis (else the model alone flies it)"),
+         "estimate_offset": _vec(3, "the layer's offset estimate on every axis, acting or not, m/s^2"),
+         "estimate_thrust_scale": _num("the layer's mass estimate, acting or not")},
     ),
     ChannelSpec(
         "/summary", "cfknode.Summary", "The flight summary (cfknode.app.ui.summary.FlightSummary.to_dict()).",
