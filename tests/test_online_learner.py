@@ -241,7 +241,8 @@ def test_a_crash_restarts_the_trainer_and_the_window_waits() -> None:
 
 
 def test_a_starting_model_is_the_first_base() -> None:
-    cfg = load_config(overrides={"online.enabled": True})
+    # Without the fast layer, as make(): the gate beside it judges only what varies, and these models are constants.
+    cfg = load_config(overrides={"online.enabled": True, "controller.adaptation": "none"})
     start = constant_model(0.5 * TRUE_R, n_networks=2)
     slot, trainer = ModelSlot(ResidualQueue.from_model_file(start), version=1), ScriptedTrainer(
         lambda req: outcome_with(constant_model(TRUE_R, n_networks=3), req))

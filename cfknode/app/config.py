@@ -52,6 +52,7 @@ class OnlineConfig:
     gate_max_cross_gain: float
     gate_layer_margin: float
     gate_layer_steps: int
+    gate_layer_min_gain: float
     trainer_timeout: float
     max_restarts: int
     start_time: float
@@ -181,6 +182,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
     ("online.gate_layer_margin", lambda v: 0 <= v < 1, "in [0, 1)"),
     ("online.gate_layer_steps", lambda v: 1 <= v <= 400, "in 1..400"),
+    ("online.gate_layer_min_gain", lambda v: 0 <= v <= 10, "in [0, 10] m/s^2"),
     ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
     ("online.max_restarts", lambda v: v >= 0, ">= 0"),
     ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),

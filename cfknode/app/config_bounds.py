@@ -178,6 +178,7 @@ BOUNDS: dict[str, Bound] = {
     "online.gate_max_cross_gain": _b(0, 10),
     "online.gate_layer_margin": _b(0, 1),
     "online.gate_layer_steps": _b(1, 400, "pairs"),
+    "online.gate_layer_min_gain": _b(0, 10, "m/s^2"),
     "online.trainer_timeout": _b(0, 600, "s", open_low=True),
     "online.max_restarts": _b(0, 100),
     "online.start_time": _SIM_TIME,

@@ -104,7 +104,8 @@ def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
     return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
                       envelope_from_data=speed is None, constant_free=beside_layer,
                       min_improvement=o.gate_layer_margin if beside_layer else 0.0,
-                      steps=o.gate_layer_steps if beside_layer else 1)
+                      steps=o.gate_layer_steps if beside_layer else 1,
+                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0)
 
 
 @contextlib.contextmanager

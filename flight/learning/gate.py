@@ -2,7 +2,8 @@
 
 Checks, in order: finite weights; a bounded residual and plausible Jacobians on the recent data
 *and* the MPC's whole operating envelope (``GateLimits``); a lower one-step error than the flying
-model on fresh data it never saw (beside the fast layer: constants aside, over a few steps).
+model on fresh data it never saw (beside the fast layer: constants aside, over a few steps, and by more
+than a network fitted to noise scores).
 ``gate_steps`` runs it in slices of about a millisecond, one per tick gap; ``run_gate`` runs it at
 once. Pure numpy: no torch here.
 """
@@ -165,6 +166,9 @@ class GateLimits:
     # ... and judge them over this many consecutive fresh pairs flown from each start, as the MPC uses a
     # model over its horizon: single steps passed networks 6-9 % better that made 1 s plans worse.
     steps: int = 1
+    # ... and the gain must be at least this acceleration (m/s^2) over that rollout's time: on 0.1 s of fresh
+    # data a few mm/s^2 is what a network fitted to noise scores, and such networks flew worse as often as better.
+    min_gain: float = 0.0
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -285,10 +289,13 @@ def gate_steps(
         return verdict(f"cross-coupling |dr_i/du_j| {cross:.2f} above {limits.max_cross_gain:g}")
     if n == 0 or not math.isfinite(e_cand):
         return verdict("no held-out data to judge it on")
+    what = ("without constants, " if cf else "") + (f"over {k} steps, " if k > 1 else "")
     if not e_cand < e_cur * (1.0 - limits.min_improvement):
-        what = ("without constants, " if cf else "") + (f"over {k} steps, " if k > 1 else "")
         need = f" by {limits.min_improvement:.0%}" if limits.min_improvement > 0.0 else ""
         return verdict(f"not better on held-out data{need} ({what}{e_cand:.4g} vs flying {e_cur:.4g} m/s)")
+    gain = (e_cur - e_cand) / (k * float(np.median(fresh.dt)))  # m/s^2: the error removed per second of rollout
+    if gain < limits.min_gain:
+        return verdict(f"better by only {gain:.3g} m/s^2 on held-out data ({what}below {limits.min_gain:g}: noise)")
     return verdict("")
 
 
