@@ -97,6 +97,7 @@ class AdaptationEstimate:
     frozen: bool = False  # no update this tick (stale pose or not flying)
     saturated: bool = False  # the last applied command was at the thrust clamp or the tilt limit
     stepping: bool = False  # a vertical step was detected and is being tracked at the step bandwidth
+    acts: tuple[bool, bool, bool] = (True, True, True)  # x, y, vertical: the estimate acts there (see engagement)
 
     @classmethod
     def neutral(cls) -> AdaptationEstimate:
@@ -214,7 +215,8 @@ def applied_estimate(estimate: AdaptationEstimate, acts: np.ndarray) -> Adaptati
         return estimate
     gain = np.where(np.array([acts[0], acts[1], True]), estimate.axis_gain, 1.0)
     return replace(estimate, offset=np.where(acts, estimate.offset, 0.0),
-                   thrust_scale=estimate.thrust_scale if acts[2] else 1.0, axis_gain=gain)
+                   thrust_scale=estimate.thrust_scale if acts[2] else 1.0, axis_gain=gain,
+                   acts=(bool(acts[0]), bool(acts[1]), bool(acts[2])))
 
 
 STEP_DRIFT = 0.5  # CUSUM drift, in noise std: surprise below half a std never accumulates

@@ -66,6 +66,26 @@ def test_frame_shows_every_panel_and_fits_the_screen(width, height):
         assert value in text, value
 
 
+@pytest.mark.parametrize(("width", "height"), [(120, 40), (100, 30), (80, 24)])
+def test_frame_shows_the_fast_layer_as_flown(width, height):
+    from cfknode.flight.adaptation import AdaptationEstimate, applied_estimate
+
+    status = busy_status()
+    estimate = AdaptationEstimate(np.array([0.21, -0.004, 0.012]), 1.31, np.ones(3), stepping=True)
+    status.layer = applied_estimate(estimate, np.array([True, False, True]))
+    lines = draw(status, width, height)
+    text = "\n".join(lines)
+    assert len(lines) <= height and all(len(line) <= width for line in lines)
+    if height < 30:  # a short screen: the panel gives way after the event list, the key help stays
+        assert "Fast layer" not in text and "Keys" in text and "Model queue" in text
+        return
+    for value in ("Fast layer", "1.310 x nominal", "+0.210 +0.000 +0.012", "acts     x z", "tracking a step"):
+        assert value in text, value
+    status.layer = applied_estimate(estimate, np.zeros(3, dtype=bool))
+    assert "none: the model alone" in "\n".join(draw(status, 120, 40))
+    assert "Fast layer" not in "\n".join(draw(busy_status(), 120, 40))  # no layer, no panel
+
+
 def test_event_panel_shows_on_a_tall_screen_and_gives_way_on_a_short_one():
     assert "validation error worse" in "\n".join(draw(busy_status(), 120, 40))
     assert "Events" not in "\n".join(draw(busy_status(), 80, 20))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from rich.cells import cell_len
 from rich.console import Console, ConsoleOptions, RenderResult
@@ -168,6 +169,7 @@ def render_frame(status: FlightStatus, wall_now: float, key_error: str | None = 
         _tracking_panel(status),
         _loop_panel(status, stats),
         _models_panel(status),
+        *([_layer_panel(status.layer)] if status.layer is not None else []),
         _trainer_panel(status),
         _link_panel(status),
         _events_panel(status),
@@ -225,6 +227,23 @@ def _models_panel(s: FlightStatus) -> _Panel:
                   (f"{s.model_rejects}", _WARN if s.model_rejects else None), (" rollbacks ", _LABEL),
                   (f"{s.model_rollbacks}", _BAD if s.model_rollbacks else None)])
     return _panel("Model queue", lines)
+
+
+def _layer_panel(e: Any) -> _Panel:
+    """The fast adaptation layer as flown: the mass and offset the controller uses, and on which axes it acts.
+    Gives way on a short screen after the event list."""
+    acts = getattr(e, "acts", (True, True, True))
+    acting = " ".join(axis for axis, on in zip("xyz", acts) if on) or "none: the model alone"
+    state = "tracking a step" if e.stepping else ("frozen" if e.frozen else ("saturated" if e.saturated else "on"))
+    offset = [(" ", None)]
+    for value in e.offset:
+        offset += [_num(float(value), "+.3f"), (" ", None)]
+    return _panel("Fast layer", [
+        _kv("mass", _num(float(e.thrust_scale), ".3f", " x nominal")),
+        _kv("offset", *offset[1:], ("m/s^2", _LABEL)),
+        _kv("acts", (acting, _VALUE if any(acts) else _NA)),
+        _kv("state", (state, _WARN if e.stepping or e.saturated else _VALUE)),
+    ], optional=True)
 
 
 def _trainer_panel(s: FlightStatus) -> _Panel:

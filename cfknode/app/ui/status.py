@@ -87,7 +87,7 @@ class FlightStatus:
         "link_lost", "battery_v", "geofence_margin_m", "models", "model_version", "model_swaps",
         "model_rejects", "model_rollbacks", "trainer_state", "trainer_last_loss", "windows_accepted",
         "windows_rejected", "poll_error", "events", "_size", "_next", "_t", "_wall", "_compute",
-        "_solve", "_pollers",
+        "_solve", "_pollers", "layer",
     )
 
     def __init__(self, nominal_rate_hz: float = 400.0, window: int = 800, title: str = "") -> None:
@@ -127,6 +127,8 @@ class FlightStatus:
         self.windows_accepted = 0
         self.windows_rejected = 0
         self.poll_error: str | None = None
+        # The fast adaptation layer's estimate as flown (``AdaptationEstimate``); None without a layer.
+        self.layer: Any = None
         self.events: deque[StatusEvent] = deque(maxlen=6)
         # Ring buffers of the newest ticks: plain lists, the cheapest store from Python.
         self._size = window
@@ -178,6 +180,7 @@ class FlightStatus:
         self.record_tick(tick.t, time.perf_counter(), tick.compute_s, tick.solve_s, tick.missed, tick.source,
                          _NAN3 if est is None else est.p, tick.ref_p)
         self.model_version = tick.model_version
+        self.layer = getattr(tick, "layer", None)
 
     def add_event(self, t: float, level: str, text: str) -> None:
         """Keep an event for the dashboard's event panel (the newest few)."""
