@@ -7,19 +7,21 @@ plant is the robustness bench's mass cell on its lab circle as the bench flew it
 drag 0.05 N/(m/s) in x and y: the steps need the layer, the drag is a state-dependent residual.
 
 Measured on this flight with the fixed 0.1 s model latency (MSE in m^2; the layer with the
-accelerometer and the mass fitted at a step, its offset behind a second pole; the estimator predicting
-with the flown acceleration; at 1.5 m as the robustness bench flies):
+accelerometer and the mass fitted at a step, its offset behind a second pole, acting on an axis once
+the error there is real; the estimator predicting with the flown acceleration; at 1.5 m as the
+robustness bench flies):
 
 | seed | mpc+dob | online | online+dob | online+dob / mpc+dob |
 |---|---|---|---|---|
-| 0 | 5.94e-4 | 5.76e-3 | 5.96e-4 | 1.00 |
-| 1 | 5.89e-4 | 6.36e-3 | 5.89e-4 | 1.00 |
-| 2 | 6.00e-4 | 5.83e-3 | 5.85e-4 | 0.98 |
+| 0 | 5.98e-4 | 5.76e-3 | 5.80e-4 | 0.97 |
+| 1 | 5.93e-4 | 6.36e-3 | 5.84e-4 | 0.99 |
+| 2 | 6.03e-4 | 5.83e-3 | 5.88e-4 | 0.98 |
 
-The layer under the learner beats the learner alone on every seed by 9.7-10.8x: the learner alone needs
+The layer under the learner beats the learner alone on every seed by 9.9-10.9x: the learner alone needs
 a window, a training round and the gate after each step, the layer knows a step within a sample.
-The learner on top of the layer beats the layer alone by 2.4 % on seed 2 and is level with it on
-seeds 0 and 1 (1.002, 0.999):
+The learner on top of the layer beats the layer alone by 1.4-2.9 % on every seed (1.00, 1.00 and
+0.98 before the gate's floor, ``online.gate_layer_min_gain``, which turns away candidates fitted
+to noise):
 the learner's targets are the acceleration not explained by the command as the layer shaped it
 (thrust from the estimated mass), so the mass stays with the layer, and at each swap the layer's
 offset is re-based by what the new model explains. Its gain is small because online training's
@@ -99,5 +101,5 @@ def test_the_layer_under_the_learner_beats_the_learner_alone(flights: dict[str, 
 
 
 def test_the_learner_on_the_layer_beats_the_layer_alone(flights: dict[str, Result]) -> None:
-    # 0.98 on this seed (1.00 and 1.00 on seeds 0 and 1): a 1 % lead is what this seed holds.
+    # 0.98 on this seed (0.97 and 0.99 on seeds 0 and 1): a 1 % lead is what the closest seed holds.
     assert flights["online+dob"].mse < flights["mpc+dob"].mse / 1.01, flights

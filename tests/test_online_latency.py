@@ -55,7 +55,9 @@ class SlowTrainer(ScriptedTrainer):
 
 
 def make(trainer_cls: type, cpu_s: float, **online: Any) -> tuple[Flight, OnlineLearner, ScriptedTrainer]:
-    cfg = load_config(overrides={"online.enabled": True, **{f"online.{k}": v for k, v in online.items()}})
+    # Without the fast layer: beside it the gate judges only what varies, and these models are constants.
+    cfg = load_config(overrides={"online.enabled": True, "controller.adaptation": "none",
+                                 **{f"online.{k}": v for k, v in online.items()}})
     slot = ModelSlot(None, version=0)
     trainer = trainer_cls(lambda req: replace(outcome_with(constant_model(TRUE_R), req), cpu_s=cpu_s, wall_s=cpu_s))
     settings = replace(learner_settings(cfg, lockstep=True), filter_hz=0.0)
