@@ -330,9 +330,12 @@ class FastAdaptation:
             return self.estimate
         if pose_fresh:
             self._last_fresh_t = t
-        dt = self.dt if self._t_prev is None else min(max(t - self._t_prev, 0.0), 0.05)
+        gap = 0.0 if self._t_prev is None else t - self._t_prev
+        dt = self.dt if self._t_prev is None else min(max(gap, 0.0), 0.05)
         self._t_prev = t
-        stale = t - self._last_fresh_t > self.s.stale_pose_s
+        # A gap in the layer's own ticks (a stalled host) is a blind spell like a stale pose: the vehicle moved
+        # meanwhile, and integrating across it read that motion as a disturbance (+-6 m/s^2 after 0.59 s).
+        stale = t - self._last_fresh_t > self.s.stale_pose_s or gap > self.s.stale_pose_s
         thrust_sat, tilt_sat = saturated
         if stale or self._obs is None or dt <= 0.0:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement

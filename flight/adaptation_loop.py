@@ -49,6 +49,7 @@ class LoopAdaptation:
         self.saturated_ticks = 0
         self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
         self._imu_t = -float("inf")  # the newest accelerometer sample used
+        self._t_last = -float("inf")  # the last tick's time: a longer gap than a stale pose is a blind spell
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -80,6 +81,9 @@ class LoopAdaptation:
         if not self._have_command:
             return self.layer.applied
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
+        if now - self._t_last > self.layer.s.stale_pose_s:  # a stalled host: the lags start from the new pose too
+            self.lags.forget_velocity()
+        self._t_last = now
         x = np.concatenate((measured_position(est), est.v))
         bz = body_z(est.q)
         u_flown = self.flown_acc(bz)

@@ -95,6 +95,22 @@ def test_frozen_while_mocap_is_stale_and_reset_on_non_finite_input() -> None:
     assert layer.estimate.thrust_scale == 1.0 and not layer.estimate.offset.any()
 
 
+def test_a_stalled_host_is_a_blind_spell_not_a_disturbance() -> None:
+    """A real-time loop starved for 0.59 s (a loaded machine, every pose fresh again after it): the vehicle
+    moved meanwhile. Integrated across the gap, that motion drove the vertical offset to its bound and the
+    vehicle fell 0.34 m; now the gap freezes the layer for its tick and the observer starts from the new pose."""
+    layer = FastAdaptation(settings(), RATE, G)
+    v = simulate(layer, 1.0, 1.0, np.zeros(3), np.zeros(3))
+    before = layer.estimate
+    dt = 1.0 / RATE
+    v = v + np.array([0.0, 0.0, -0.8])  # the vehicle sank during the stall
+    layer.update(1.0 + 0.59, v, None, np.zeros(3), np.zeros(3))
+    assert layer.estimate.frozen
+    for i in range(1, int(0.5 * RATE)):  # then ticks as usual: the vehicle holds its (new) velocity
+        layer.update(1.59 + i * dt, v, None, np.zeros(3), np.zeros(3))
+    assert np.abs(layer.estimate.offset).max() < 0.05 and abs(layer.estimate.thrust_scale - before.thrust_scale) < 0.01
+
+
 def test_rebase_keeps_model_plus_layer_continuous_and_the_model_takes_over() -> None:
     """The learner trains on a_meas - u as always; at a swap the layer keeps only what the new model misses."""
     layer = FastAdaptation(settings(), RATE, G)
