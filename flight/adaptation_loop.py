@@ -53,7 +53,7 @@ class LoopAdaptation:
 
     @property
     def estimate(self) -> AdaptationEstimate:
-        """What the controller flies with: the layer's estimate on the axes where it acts (``FastAdaptation.applied``)."""
+        """What the controller flies with: the estimate on the axes where it acts (``FastAdaptation.applied``)."""
         return self.layer.applied
 
     def f_max(self) -> float:
@@ -174,7 +174,8 @@ class LoopAdaptation:
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
-                "acts": [bool(a) for a in self.layer.acts], "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale}
+                "acts": [bool(a) for a in self.layer.acts], "estimate_offset": e.offset,
+                "estimate_thrust_scale": e.thrust_scale}
 
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate

@@ -36,7 +36,7 @@ class AdaptationTuning:
     engage_level: float = 0.0  # m/s^2: an axis's estimate acts once it is above this; 0 = always acts
     engage_slow_level: float = float("inf")  # m/s^2: ... or once its slow mean is above this
     engage_slow_s: float = 2.0  # s, time constant of that mean
-    release_s: float = 1.0  # s below half of engage_level before an axis lets go again
+    release_s: float = 1.0  # s with both under half their levels before an axis lets go again
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,8 @@ def test_engagement_acts_above_the_level_and_lets_go_after_a_quiet_spell() -> No
 
 def test_a_small_error_that_persists_engages_through_its_slow_mean_and_holds() -> None:
     small = np.array([0.0, 0.0, 0.04])  # under the level: a 0.4 % mass error
-    acts, quiet = engagement(np.zeros(3, dtype=bool), np.zeros(3), small, np.array([0.0, 0.0, 0.02]), 0.08, 0.03, 0.3, DT)
+    acts, quiet = engagement(np.zeros(3, dtype=bool), np.zeros(3), small, np.array([0.0, 0.0, 0.02]),
+                             0.08, 0.03, 0.3, DT)
     assert not acts.any()  # its mean has not built up yet
     acts, quiet = engagement(acts, quiet, small, np.array([0.0, 0.0, 0.035]), 0.08, 0.03, 0.3, DT)
     assert acts.tolist() == [False, False, True]

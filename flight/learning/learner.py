@@ -20,9 +20,9 @@ decided, i.e. between ticks, and does, in order:
    bounded residual and plausible Jacobians on the recent data *and* the whole operating
    envelope, where the MPC may linearise it; a lower one-step error than the flying model on
    fresh data it never saw; beside the fast layer, without constants, over five steps, by a
-   margin and by at least ``online.gate_layer_min_gain`` of acceleration), one slice of up to about a millisecond per tick gap (the five-step rollout grows with
-   the fresh data: 0.9 ms at 40 samples), and is then swapped into the ``ModelSlot``: a reference
-   assignment, so no rebuild.
+   margin and by at least ``online.gate_layer_min_gain`` of acceleration), one slice of up to
+   about a millisecond per tick gap (the five-step rollout grows with the fresh data: 0.9 ms at
+   40 samples), and is then swapped into the ``ModelSlot``: a reference assignment, so no rebuild.
 
 Honest latency in lockstep simulation: a model is applied no earlier than the moment its
 request was sent (its window's end) plus the observed training round trip. The simulation is
