@@ -106,7 +106,7 @@ class AdaptationEstimate:
 
     def to_log(self) -> dict[str, object]:
         return {"offset": self.offset, "thrust_scale": self.thrust_scale, "axis_gain": self.axis_gain[:2],
-                "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping}
+                "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping, "acts": list(self.acts)}
 
 
 # ---------------------------------------------------------------- pure math
@@ -273,11 +273,10 @@ class FastAdaptation:
     def reset(self) -> None:
         """Back to the model alone (take-off, landing, non-finite input)."""
         self.estimate = AdaptationEstimate.neutral()
-        self.applied = self.estimate  # what the controller flies with (see engagement)
         self._quiet = np.zeros(3)
         self._slow = np.zeros(3)  # the evidence's slow mean
-        self.acts = engagement(np.zeros(3, dtype=bool), self._quiet, self._slow, self._slow, self.s.engage_level,
-                               self.s.engage_slow_level, self.s.release_s, 0.0)[0]
+        self.acts = np.full(3, self.s.engage_level <= 0.0)  # level 0: every axis always acts
+        self.applied = applied_estimate(self.estimate, self.acts)  # what the controller flies with (see engagement)
         self._sigma = np.zeros(3)
         self._out = np.zeros(3)  # the published offset before its bound and the saturation hold
         self._obs: np.ndarray | None = None  # dob z or l1 v_hat; None: re-synchronise on the next update
@@ -331,12 +330,10 @@ class FastAdaptation:
             return self.estimate
         if pose_fresh:
             self._last_fresh_t = t
-        gap = 0.0 if self._t_prev is None else t - self._t_prev
-        dt = self.dt if self._t_prev is None else min(max(gap, 0.0), 0.05)
+        stalled = self.stalled(t)
+        dt = self.dt if self._t_prev is None else min(max(t - self._t_prev, 0.0), 0.05)
         self._t_prev = t
-        # A gap in the layer's own ticks (a stalled host) is a blind spell like a stale pose: the vehicle moved
-        # meanwhile, and integrating across it read that motion as a disturbance (+-6 m/s^2 after 0.59 s).
-        stale = t - self._last_fresh_t > self.s.stale_pose_s or gap > self.s.stale_pose_s
+        stale = t - self._last_fresh_t > self.s.stale_pose_s or stalled
         thrust_sat, tilt_sat = saturated
         if stale or self._obs is None or dt <= 0.0:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement
@@ -392,6 +389,12 @@ class FastAdaptation:
         self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
         self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
         return self.estimate
+
+    def stalled(self, t: float) -> bool:
+        """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The
+        vehicle moved meanwhile, and integrating across the gap read that motion as a disturbance (+-6 m/s^2
+        after 0.59 s)."""
+        return self._t_prev is not None and t - self._t_prev > self.s.stale_pose_s
 
     def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool) -> bool:
         """True while a vertical step (a mass change, a payload) is being tracked fast.

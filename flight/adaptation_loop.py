@@ -49,7 +49,6 @@ class LoopAdaptation:
         self.saturated_ticks = 0
         self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
         self._imu_t = -float("inf")  # the newest accelerometer sample used
-        self._t_last = -float("inf")  # the last tick's time: a longer gap than a stale pose is a blind spell
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -81,9 +80,8 @@ class LoopAdaptation:
         if not self._have_command:
             return self.layer.applied
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
-        if now - self._t_last > self.layer.s.stale_pose_s:  # a stalled host: the lags start from the new pose too
+        if self.layer.stalled(now):  # a stalled host: the lags start from the new pose too
             self.lags.forget_velocity()
-        self._t_last = now
         x = np.concatenate((measured_position(est), est.v))
         bz = body_z(est.q)
         u_flown = self.flown_acc(bz)
@@ -174,8 +172,7 @@ class LoopAdaptation:
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
-                "acts": [bool(a) for a in self.layer.acts], "estimate_offset": e.offset,
-                "estimate_thrust_scale": e.thrust_scale}
+                "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale}
 
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
@@ -184,7 +181,7 @@ class LoopAdaptation:
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases,
-                "adaptation_acts_end": [bool(a) for a in self.layer.acts]}
+                "adaptation_acts_end": list(self.layer.applied.acts)}
 
 
 def measured_position(est: Any) -> np.ndarray:

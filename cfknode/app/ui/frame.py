@@ -235,12 +235,10 @@ def _layer_panel(e: Any) -> _Panel:
     acts = getattr(e, "acts", (True, True, True))
     acting = " ".join(axis for axis, on in zip("xyz", acts) if on) or "none: the model alone"
     state = "tracking a step" if e.stepping else ("frozen" if e.frozen else ("saturated" if e.saturated else "on"))
-    offset = [(" ", None)]
-    for value in e.offset:
-        offset += [_num(float(value), "+.3f"), (" ", None)]
+    offset = [part for value in e.offset for part in (_num(float(value), "+.3f"), (" ", None))]
     return _panel("Fast layer", [
         _kv("mass", _num(float(e.thrust_scale), ".3f", " x nominal")),
-        _kv("offset", *offset[1:], ("m/s^2", _LABEL)),
+        _kv("offset", *offset, ("m/s^2", _LABEL)),
         _kv("acts", (acting, _VALUE if any(acts) else _NA)),
         _kv("state", (state, _WARN if e.stepping or e.saturated else _VALUE)),
     ], optional=True)
