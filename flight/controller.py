@@ -136,6 +136,11 @@ class Controller:
         self._pending: TickInfo | None = None
 
     @property
+    def predicted_positions(self) -> np.ndarray | None:
+        """The last solved plan's positions over the horizon, (N+1, 3) m; None before a solve or after a failed one."""
+        return None if self._x_pred is None else self._x_pred[:, :3].copy()
+
+    @property
     def backend(self) -> str:
         """The solver's name (e.g. ``rti-qrqp-codegen``), or ``geometric``."""
         return self.solver.backend if self.solver is not None else "geometric"

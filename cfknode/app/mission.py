@@ -22,6 +22,7 @@ from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.flight.controller import Controller
 from cfknode.flight.learning.trainer_client import refuse_in_spawned_import
 from cfknode.flight.estimator import VelocityEstimator
+from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
 from cfknode.app.logs.writer import FlightLog
 from cfknode.flight.loop import FlightParts, FlightRecord, TickObserver, fly
 from cfknode.flight.model_slot import ModelSlot
@@ -97,6 +98,7 @@ def run_flight(
     dashboard: Any = None,
     trajectory: Any = None,
     estop: bool = True,
+    live: Any = None,
 ) -> FlightResult:
     """Fly one mission with the configured backend and return its summary.
 
@@ -105,7 +107,8 @@ def run_flight(
     for operator controls outside the loop. ``dashboard`` is a rich Console to draw the live
     dashboard on (None: headless); its space and q keys land the drone. ``trajectory``: the
     reference to fly instead of the configured one (a fleet drone's placed pattern). ``estop``
-    False: no e-stop mailbox entry of its own (a fleet's driver keeps the drone's entry).
+    False: no e-stop mailbox entry of its own (a fleet's driver keeps the drone's entry). ``live``:
+    a Foxglove live server (``cfknode.app.foxglove.live.LiveServer``) to show the flight on too.
     """
     refuse_in_spawned_import()
     if cfg.backend == "sim":
@@ -142,7 +145,7 @@ def run_flight(
     box = estop_mailbox(cfg, flight_cfg) if estop else contextlib.nullcontext(None)
     with box as estop_box, start_trainer(flight_cfg) as trainer, session as sess:
         return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
-                            estop_box, (*forced, *sess.events), trajectory)
+                            estop_box, (*forced, *sess.events), trajectory, live)
 
 
 def estop_name(cfg: Config) -> str:
@@ -186,6 +189,7 @@ def _fly_session(
     estop: EstopMailbox | None = None,
     events: Sequence[dict[str, Any]] = (),
     trajectory: Any = None,
+    live: Any = None,
 ) -> FlightResult:
     from cfknode.app.learning import online_session
 
@@ -194,8 +198,9 @@ def _fly_session(
         trajectory = make_trajectory(cfg.trajectory, sess.start_position)
     status = _dashboard_status(cfg) if dashboard is not None else None
     with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
+        view = foxglove_view(flight_log, cfg, trajectory, live)
         # Guarded: a failing write (or dashboard tap) is reported, never the end of the flight.
-        log: Any = GuardedLog(flight_log if status is None else StatusTap(flight_log, status))
+        log: Any = GuardedLog(view if status is None else StatusTap(view, status))
         for event in events:
             log.write("/events", 0.0, event)
         supervisor = build_supervisor(
@@ -214,6 +219,7 @@ def _fly_session(
                                     deadline_s=deadline, ground_z=ground_z, true_mass=sess.true_mass)
             if online is not None:
                 controller.observers.append(online)
+            view.follow_plan(cfg.hardware.robot, lambda: controller.predicted_positions)
             parts = FlightParts(
                 clock=sess.clock,
                 mocap=sess.mocap,
@@ -270,6 +276,7 @@ def _fly_session(
                     **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
                     "internal_errors": list(outcome.errors),
+                    **({"foxglove_failures": view.failures} if view.failures else {}),
                     **after,
                 },
             )
@@ -280,6 +287,13 @@ def _fly_session(
         summary = dataclasses.replace(summary, extra={**summary.extra, "flight_log": incomplete})
         outcome = dataclasses.replace(outcome, message=f"{outcome.message}; but the flight log is {incomplete}")
     return FlightResult(summary=summary, record=record, outcome=outcome, learner=online, log_incomplete=incomplete)
+
+
+def foxglove_view(flight_log: FlightLog, cfg: Config, trajectory: Any, live: Any) -> FoxgloveView:
+    """The flight log's tap that mirrors the flight in Foxglove's schemas, into the log and to ``live``."""
+    drawing = Drawing(reference_points(trajectory), (cfg.safety.fence_min, cfg.safety.fence_max))
+    sinks = [McapSink(flight_log), *([live] if live is not None else [])]
+    return FoxgloveView(flight_log, sinks, {cfg.hardware.robot: drawing})
 
 
 def _imu_fields(radio: Any, flown: bool) -> dict[str, Any]:

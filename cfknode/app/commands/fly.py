@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 import sys
 from pathlib import Path
@@ -75,6 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--headless", action="store_true", help="fly without the live dashboard")
     p.add_argument("--online", action="store_true", help="learn the KNODE model in flight (config section online)")
+    p.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
+                   help="serve the flight live to Foxglove on ws://127.0.0.1:PORT (default 8765; docs/foxglove.md)")
     p.add_argument("--paper-lockstep", dest="paper_lockstep", action="store_true",
                    help="online learning as the paper's code does it: the simulation waits for every model "
                         "(for reproduction only)")
@@ -179,9 +182,9 @@ def run(args: argparse.Namespace) -> int:
     show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
     # SIGTERM and SIGHUP end a flight as Ctrl-C does (land, then stop), never the process at once.
     try:
-        with ProcessSignals() as signals:
+        with ProcessSignals() as signals, _live_view(args, console) as live:
             result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None,
-                                on_supervisor=signals.route)
+                                on_supervisor=signals.route, live=live)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1
@@ -197,3 +200,15 @@ def run(args: argparse.Namespace) -> int:
     # watchdog landing, a stop signal, a stop, a refusal or a log that stopped writing is 1.
     complete = result.outcome.state.value == "LANDED" and result.outcome.cause == "complete"
     return 0 if complete and result.log_incomplete is None and not result.outcome.errors else 1
+
+
+def _live_view(args: argparse.Namespace, console: Any) -> contextlib.AbstractContextManager[Any]:
+    """The Foxglove live server that ``--foxglove`` asks for (a bad port is a ConfigError), or none."""
+    port = getattr(args, "foxglove", None)
+    if port is None:
+        return contextlib.nullcontext(None)
+    from cfknode.app.foxglove.live import LiveServer
+
+    server = LiveServer(port=port)
+    console.print(f"Foxglove live view: ws://127.0.0.1:{server.port} (Open connection in Foxglove)")
+    return server

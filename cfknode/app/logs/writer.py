@@ -306,6 +306,32 @@ class FlightLog:
         text = self._encode(payload)
         if "NaN" in text or "Infinity" in text:  # rare: a failed solve; re-encode with nulls
             text = self._encode(_finite_or_none(payload))
+        self._add(topic, entry, t, text.encode())
+
+    def add_encoded_channel(self, topic: str, schema_name: str, schema_encoding: str, schema: bytes,
+                            message_encoding: str) -> None:
+        """A channel whose messages the caller encodes (Foxglove's protobuf schemas, see docs/foxglove.md).
+
+        ``read_log`` passes such channels over; Foxglove decodes them with ``schema``."""
+        if topic in self._topics:
+            raise ValueError(f"flight-log topic {topic!r} exists already")
+        with self._lock:
+            if self._closed:
+                raise ValueError(f"flight log {self._path.name} is closed")
+            schema_id = self._writer.register_schema(schema_name, schema_encoding, schema)
+            self._topics[topic] = (self._writer.register_channel(topic, message_encoding, schema_id), False)
+
+    def write_encoded(self, topic: str, t: float, data: bytes) -> None:
+        """Log an encoded message on a channel from ``add_encoded_channel``; failures as ``write``."""
+        entry = self._topics.get(topic)
+        if entry is None:
+            raise ValueError(f"unknown flight-log topic {topic!r}; known: {', '.join(self._topics)}")
+        t = float(t)
+        if not 0.0 <= t < _MAX_T:
+            raise ValueError(f"flight-log time must be finite and >= 0, got {t} on {topic}")
+        self._add(topic, entry, t, data)
+
+    def _add(self, topic: str, entry: tuple[int, bool], t: float, data: bytes) -> None:
         ns = round(t * 1e9)
         channel_id, flush_now = entry
         with self._lock:
@@ -318,7 +344,7 @@ class FlightLog:
                 self._unflushed_from = t
             writes = self._stream.writes
             try:
-                self._writer.add_message(channel_id, ns, text.encode(), ns)
+                self._writer.add_message(channel_id, ns, data, ns)
             except OSError as exc:  # the add closed a full chunk, and that write failed
                 self._dropped += 1
                 self._fail(exc)
