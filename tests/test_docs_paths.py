@@ -1,0 +1,135 @@
+"""The docs name files that exist, and their links land on headings that exist.
+
+Every backticked repository path in docs/*.md and README.md (`flight/estimator.py`,
+`docs/results.md`, `cfknode/config/default.yaml`, ...) must exist in the checkout, and every
+link to a docs page's heading (`docs/results.md#bench-timing` anywhere in the tree,
+`(results.md#bench-timing)` or `(#bench-timing)` inside docs/) must name a heading of that page.
+A moved or renamed file, or a renamed section, fails here instead of leaving a stale name behind.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+PAGES = sorted(DOCS.glob("*.md")) + [ROOT / "README.md"]
+
+# The repository's own top-level folders and files: a backticked path under one of them is a
+# claim about this checkout.
+TOP = tuple(sorted(p.name for p in ROOT.iterdir() if not p.name.startswith(".")))
+
+# Backticked paths that are examples of a user's own files, not files of this repository.
+USER_FILES = {
+    "flights/*-heavy.mcap",
+}
+
+_TICKED = re.compile(r"`([^`\s]+)`")
+_FILE_LIKE = re.compile(r"^[A-Za-z0-9_.\-/*]+\.(py|md|yaml|yml|toml|json|png|txt|cfg|sh)$")
+
+
+def _repo_paths(text: str) -> set[str]:
+    """Backticked tokens that name a path in this repository (a folder of it, then a file)."""
+    found = set()
+    for token in _TICKED.findall(text):
+        token = token.split("#", 1)[0].rstrip(":,.")
+        if "/" not in token or token.startswith(("/", "sim:", "radio:")):
+            continue
+        if token.split("/", 1)[0] not in TOP:
+            continue
+        if _FILE_LIKE.match(token) or token.endswith("/"):
+            found.add(token)
+    return found
+
+
+_LINK_TARGET = re.compile(r"\]\(([^)\s#]+)(?:#[^)]*)?\)")
+
+
+def test_relative_links_land_on_files():
+    missing = []
+    for page in PAGES:
+        for target in _LINK_TARGET.findall(page.read_text(encoding="utf-8")):
+            if re.match(r"^[a-z]+:", target):
+                continue
+            if not (page.parent / target).exists():
+                missing.append(f"{page.relative_to(ROOT)}: ({target})")
+    assert not missing, "links to files that are not in the repository:\n" + "\n".join(missing)
+
+
+def _exists(path: str) -> bool:
+    if "*" in path:
+        return any(ROOT.glob(path))
+    return (ROOT / path).exists()
+
+
+def test_backticked_repository_paths_exist():
+    missing = []
+    for page in PAGES:
+        for path in sorted(_repo_paths(page.read_text(encoding="utf-8"))):
+            if path not in USER_FILES and not _exists(path):
+                missing.append(f"{page.relative_to(ROOT)}: `{path}`")
+    assert not missing, "paths named in the docs that are not in the repository:\n" + "\n".join(missing)
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"[`*]", "", heading.strip()).lower()
+    text = re.sub(r"[^\w\- ]", "", text)
+    return text.replace(" ", "-")
+
+
+def _anchors(page: Path) -> set[str]:
+    seen: dict[str, int] = {}
+    anchors = set()
+    in_code = False
+    for line in page.read_text(encoding="utf-8").splitlines():
+        if line.startswith("```"):
+            in_code = not in_code
+            continue
+        m = re.match(r"^#{1,6}\s+(.*)$", line)
+        if m and not in_code:
+            slug = _slug(m.group(1))
+            n = seen.get(slug, 0)
+            seen[slug] = n + 1
+            anchors.add(slug if n == 0 else f"{slug}-{n}")
+    return anchors
+
+
+_TREE_LINK = re.compile(r"docs/([\w\-]+\.md)#([\w\-]+)")
+_DOCS_LINK = re.compile(r"\]\(([\w\-]+\.md)?#([\w\-]+)\)")
+
+
+def _tree_files():
+    for pattern in ("*.md", "*.py", "*.yaml", "*.toml"):
+        for path in ROOT.rglob(pattern):
+            rel = path.relative_to(ROOT).parts
+            if rel[0].startswith(".") or rel[0] in {"build", "flights", "node_modules"} or "egg-info" in rel[0]:
+                continue
+            yield path
+
+
+def test_links_to_docs_headings_resolve():
+    anchors = {page.name: _anchors(page) for page in DOCS.glob("*.md")}
+    broken = []
+    for path in _tree_files():
+        if path == Path(__file__).resolve():
+            continue
+        text = path.read_text(encoding="utf-8", errors="replace")
+        links = [(page, anchor) for page, anchor in _TREE_LINK.findall(text)]
+        if path.parent == DOCS:
+            links += [(page or path.name, anchor) for page, anchor in _DOCS_LINK.findall(text)]
+        for page, anchor in links:
+            if anchor not in anchors.get(page, set()):
+                broken.append(f"{path.relative_to(ROOT)}: {page}#{anchor}")
+    assert not broken, "links to headings that do not exist:\n" + "\n".join(sorted(set(broken)))
+
+
+def test_the_checks_see_what_they_check():
+    # the path pattern and the slugs on known cases, so an empty scan cannot pass unnoticed
+    assert _repo_paths("see `flight/estimator.py` and `docs/results.md#x`, not `sim://0`") == {
+        "flight/estimator.py", "docs/results.md"}
+    assert _slug("Latency compensation (`estimator.command_delay`)") == (
+        "latency-compensation-estimatorcommand_delay")
+    assert _slug("The estimator's input") == "the-estimators-input"
+    assert "bench-timing" in _anchors(DOCS / "results.md")
