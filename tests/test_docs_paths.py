@@ -22,9 +22,11 @@ PAGES = sorted(DOCS.glob("*.md")) + [ROOT / "README.md"]
 # `app/`, `ui/`, ..., is relative to that folder and not checked.)
 TOP = frozenset(p.name for p in ROOT.iterdir() if not p.name.startswith(".")) | {"flights"}
 
-# Backticked paths that are examples of a user's own files, not files of this repository
-# (e.g. "flights/*-heavy.mcap", a log the reader's own flight writes). None is backticked today.
-USER_FILES: frozenset[str] = frozenset()
+# Backticked paths that are a user's own files, not files of this repository: what the reader's
+# own flights write (a fresh clone has no flights/ until the first flight).
+USER_FILES = frozenset({
+    "flights/",  # log.dir, where every flight's log is written
+})
 
 _TICKED = re.compile(r"`([^`\s]+)`")
 _FILE_LIKE = re.compile(r"^[A-Za-z0-9_.\-/*]+\.(py|md|yaml|yml|toml|json|png|txt|cfg|sh|mcap|ckpt)$")
