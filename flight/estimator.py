@@ -10,7 +10,7 @@ The input is the acceleration the vehicle flies, not the one commanded: a tilt t
 loop's response time to arrive (``attitude_lag``, a first-order lag on x and y; the collective
 thrust's motors are an order faster). Predicting with the command itself put the velocity ahead of
 the vehicle through every manoeuvre, by the jerk times that lag, and the MPC and the fast layer
-flew on that error (paper circle, plain MPC: 6.3e-5 m^2 against 3.4e-5 with the lag).
+flew on that error (measured in docs/history.md#the-estimators-input).
 
 The model is the same on every axis (same noise, same measurement times), so the 2x2
 covariance and the gain are scalars shared by the three axes; only the mean is (3,).

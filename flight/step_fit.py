@@ -2,7 +2,7 @@
 
 After a step the fast layer's observer has to move the thrust scale while the controller is changing the
 thrust to catch the fall: an additive estimate moved into a multiplicative one, around a loop with the
-motors' lag and 10 ms between frames. It rang (0.4-0.74 for a true 0.5 on the paper's circle). A step is
+motors' lag and 10 ms between frames. It rang (docs/history.md#the-mass-fitted-at-a-step-and-a-quieter-offset). A step is
 instead a change of one number in a known law: the vertical acceleration is theta * a_T - g + r, with a_T
 the acting thrust along the body axis over the nominal mass (known, whatever the controller does) and theta
 = nominal / true mass. So the heights of the frames around the onset are fitted, in closed form, with

@@ -294,8 +294,8 @@ def train(
     batch = _batch(queue, dataset.train, model)
     optimiser = torch.optim.Adam(params, lr=cfg.lr)
     # Weight decay spares the output bias: it is the constant offset (a mass or thrust error at
-    # hover, a CoG bias) a window identifies best. Decayed, a 4 % mass step was learned at a
-    # quarter of its size (lab circle z offset 22 mm against 30 mm nominal; 4 mm spared).
+    # hover, a CoG bias) a window identifies best; decayed, it was learned at a fraction of its
+    # size (docs/history.md#online-learning-how-the-defaults-were-reached).
     bias = queue.newest.layers[-1].bias
     decayed = [p for p in params if p is not bias]
     history = []

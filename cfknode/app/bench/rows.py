@@ -25,10 +25,9 @@ LABELS = {
 ORACLE = "oracle"
 ORACLE_LATE = "oracle_late"  # a bound for estimators that must see a change first: two 100 Hz mocap frames
 REFERENCES = (ORACLE, ORACLE_LATE)  # rows that read the simulator's truth: never "the lowest"
-# The benches fly lockstep with a fixed training latency. Measured on a 2-core machine (bench online --quick,
-# latency cpu): with both cores kept busy the rounds' wall time rose 2.3x but their CPU time only from
-# 0.059-0.097 s to 0.067-0.113 s, and the MSE was identical; still, a round near a rounding step can cross
-# it under load and move a swap, which a fixed delay cannot.
+# The benches fly lockstep with a fixed training latency: a round's CPU time grows a little under load, and a
+# round near a rounding step of `cpu` can cross it and move a swap, which a fixed delay cannot
+# (docs/history.md#reproducible-online-benchmarks).
 DEFAULT_LATENCY = "fixed"
 DEFAULT_FIXED_LATENCY_S = 0.1  # s: the trainer's CPU time per round measured here, rounded up
 

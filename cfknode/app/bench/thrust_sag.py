@@ -9,7 +9,7 @@ thrust in units of the new weight. The fall stops when the velocity is back to z
 
 A later command (detection, the command path) only adds to the fall: ``reaction_s`` holds
 the old thrust that long first. The robustness bench (cfknode/app/bench/robustness.py) flies
-its patterns high enough for the worst of its cells (docs/results.md, "Robustness").
+its patterns high enough for the worst of its cells (docs/results.md#bench-robustness).
 """
 
 from __future__ import annotations
