@@ -25,6 +25,7 @@ class TrainingConfig:
     seed: int
     velocity_filter_hz: float
     validation_fraction: float
+    batch_size: int = 16384  # pairs per Adam step; a larger dataset trains on a random batch each step
 
 
 @dataclass(frozen=True)

@@ -236,6 +236,25 @@ def _batch(queue: KnodeQueue, p: Pairs, model: TrainingResidual | None = None) -
     return _Batch(as_t(p.x0), as_t(p.x1), _HybridOde(model, as_t(p.u), as_t(p.dt)))
 
 
+def _minibatches(batch: _Batch, size: int, seed: int) -> Callable[[], _Batch]:
+    """Each call, the batch one Adam step trains on: all pairs, or above ``size`` a random ``size`` of them.
+
+    Up to ``size`` pairs (every cfknode log of a few minutes, every online window) a step is the
+    full batch, as before; a 60,000-sample dataset costs a quarter as much a step (docs/data.md).
+    """
+    n = int(batch.x0.shape[0])
+    if size <= 0 or n <= size:
+        return lambda: batch
+    generator = torch.Generator().manual_seed(seed)
+
+    def draw() -> _Batch:
+        idx = torch.randperm(n, generator=generator)[:size]
+        ode = _HybridOde(batch.ode.model, batch.ode.u[idx], batch.ode.dt[idx, 0])
+        return _Batch(batch.x0[idx], batch.x1[idx], ode)
+
+    return draw
+
+
 def _integrate(batch: _Batch, method: str, adjoint: bool, step_size: float, params: Sequence[torch.Tensor]) -> torch.Tensor:
     """x at s = 1 for every pair: one batched odeint call."""
     s = torch.tensor([0.0, 1.0], dtype=batch.x0.dtype)
@@ -299,10 +318,12 @@ def train(
     bias = queue.newest.layers[-1].bias
     decayed = [p for p in params if p is not bias]
     history = []
+    draw = _minibatches(batch, cfg.batch_size, cfg.seed)
     for epoch in range(1, cfg.epochs + 1):
         optimiser.zero_grad(set_to_none=True)
-        pred = _integrate(batch, cfg.method, cfg.adjoint, step_size, params)
-        loss = _data_loss(pred, batch, position_weight)
+        step = draw()
+        pred = _integrate(step, cfg.method, cfg.adjoint, step_size, params)
+        loss = _data_loss(pred, step, position_weight)
         objective = loss + cfg.weight_decay * sum((p * p).sum() for p in decayed)
         objective.backward()
         optimiser.step()

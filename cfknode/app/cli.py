@@ -22,7 +22,7 @@ from cfknode import __version__  # noqa: E402
 from cfknode.app.cli_logging import command_logging  # noqa: E402
 from cfknode.app.config import ConfigError  # noqa: E402
 
-COMMANDS: tuple[str, ...] = ("fly", "train", "plot", "replay", "calibrate", "estop", "bench")
+COMMANDS: tuple[str, ...] = ("fly", "train", "model", "plot", "replay", "calibrate", "estop", "bench")
 
 
 class UsageError(ValueError):

@@ -161,6 +161,7 @@ BOUNDS: dict[str, Bound] = {
     "knode.queue_size": _b(1, 10),
     "knode.max_residual": _b(0, 100, "m/s^2", open_low=True),
     "training.epochs": _b(1, 100_000),
+    "training.batch_size": _b(64, 10_000_000),
     "training.lr": _b(0, 1, open_low=True),
     "training.weight_decay": _b(0, 100),
     "training.seed": _SEED,

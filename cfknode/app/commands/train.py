@@ -1,4 +1,7 @@
-"""``cfknode train``: fit a KNODE residual to one or more flight logs and write a model file."""
+"""``cfknode train``: fit a KNODE residual to flight logs or flight tables and write a model file.
+
+After training, the model is judged on held-out data (whole manoeuvres or files where there are
+two or more) beside the fast layer, with the same score as ``cfknode model check``."""
 
 from __future__ import annotations
 
@@ -8,14 +11,15 @@ import sys
 from pathlib import Path
 
 from cfknode.app.cli import UsageError
+from cfknode.app.commands.data_args import add_data_arguments, dataset_for, read_segments
 from cfknode.app.commands.fly import add_config_arguments, config_from_args
 
-HELP = "train a KNODE model from flight logs (offline KNODE-MPC)"
+HELP = "train a KNODE model from flight logs or CSV/Parquet flight tables (offline KNODE-MPC)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p)
-    p.add_argument("--log", action="append", required=True, metavar="FLIGHT_LOG", help="flight log (repeatable)")
+    add_data_arguments(p)
     p.add_argument("--out", required=True, help="model file to write (safetensors)")
     p.add_argument("--init", help="start from this model file's queue (a new network is pushed onto it)")
     p.add_argument("--epochs", type=int, help="override training.epochs")
@@ -30,21 +34,17 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from cfknode.app.config import ConfigError
-    from cfknode.app.logs.training_data import segments_from_logs
     from cfknode.models.knode import from_torch_queue
     from cfknode.models.modelfile import ModelFileError, load_model, model_summary, save_model
-    from cfknode.models.training import make_dataset, train_new_model
+    from cfknode.models.training import train_new_model
 
     console = Console()
-    segments = segments_from_logs(args.log, lambda line: print(f"cfknode: warning: {line}", file=sys.stderr))
+    segments, _ = read_segments(args, cfg)
     try:
         initial = load_model(args.init) if args.init else None
     except ModelFileError as exc:
         raise ConfigError(str(exc)) from None
-    try:
-        dataset = make_dataset(segments, cfg.training.velocity_filter_hz, cfg.training.validation_fraction)
-    except ValueError as exc:
-        raise ConfigError(f"cannot train on {', '.join(args.log)}: {exc}") from None
+    dataset, held_out = dataset_for(segments, cfg, args.split)
     console.print(
         f"training on {len(dataset.train)} pairs ({len(dataset.val)} held out) from {len(segments)} segment(s), "
         f"{cfg.training.epochs} epochs, {cfg.training.method}"
@@ -63,4 +63,11 @@ def run(args: argparse.Namespace) -> int:
         f"held-out one-step velocity RMSE: nominal {result.val_rmse_nominal:.4g} m/s -> model "
         f"{result.val_rmse_model:.4g} m/s; wrote {path}"
     )
+    if len(dataset.val) >= 10:
+        from cfknode.app.data.check import check, queue_residual, render
+
+        a = cfg.controller.adaptation_settings
+        render(check(dataset.val, queue_residual(queue), (a.bandwidth_xy_hz, a.bandwidth_hz),
+                     (a.output_bandwidth_xy_hz, a.output_bandwidth_hz), held_out or ("the last part of each run",)),
+               console)
     return 0

@@ -1,0 +1,1 @@
+"""Flight data from outside cfknode (CSV, Parquet) as training segments; see docs/data.md."""
