@@ -281,6 +281,8 @@ MAX_YAML_BYTES = 1 << 20
 
 def read_yaml_mapping(path: Path, what: str = "config file") -> dict[str, Any]:
     """A YAML file holding a mapping; a missing file or bad YAML is a one-line ConfigError naming it."""
+    if not (path.exists() or path.is_symlink()):
+        raise ConfigError(f"{what} not found: {path}")
     raw = read_regular(path, MAX_YAML_BYTES, ConfigError, what)
     try:
         text = raw.decode("utf-8")

@@ -71,17 +71,17 @@ def size_text(n: int) -> str:
 
 
 def open_regular(path: str | Path, max_bytes: int, error: type[Exception], what: str,
-                 follow: bool = True) -> tuple[BinaryIO, int]:
+                 follow: bool = True, buffering: int = -1) -> tuple[BinaryIO, int]:
     """``path`` opened for reading, with its size, if it is a regular file of at most ``max_bytes``.
 
-    Else ``error`` with one line: "<what> not found: <path>" or "<what> <path>: <problem>".
+    Else ``error`` with one line: "<what> <path>: <problem>" (e.g. "not found").
     ``follow=False`` refuses a symbolic link instead of opening what it points at.
     """
     flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow else os.O_NOFOLLOW)
     try:
         fd = os.open(path, flags)
     except FileNotFoundError:
-        raise error(f"{what} not found: {path}") from None
+        raise error(f"{what} {path}: not found") from None
     except OSError as exc:
         raise error(f"{what} {path}: cannot read it ({describe_os_error(exc)})") from None
     try:
@@ -90,7 +90,7 @@ def open_regular(path: str | Path, max_bytes: int, error: type[Exception], what:
             raise error(f"{what} {path}: {file_kind(st.st_mode)}, not a regular file")
         if st.st_size > max_bytes:
             raise error(f"{what} {path}: {size_text(st.st_size)} is larger than the cap of {size_text(max_bytes)}")
-        return os.fdopen(fd, "rb"), st.st_size
+        return os.fdopen(fd, "rb", buffering=buffering), st.st_size
     except BaseException:
         os.close(fd)
         raise
