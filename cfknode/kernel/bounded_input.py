@@ -161,6 +161,10 @@ def json_depth(data: bytes | str) -> int:
 # --- YAML -------------------------------------------------------------------------------------
 
 
+class _Bound(yaml.YAMLError):
+    """A document past one of the bounds above (its message is one short line)."""
+
+
 class _BoundedLoader(yaml.SafeLoader):
     """PyYAML's safe loader, counting aliases and nesting while it composes the document and
     refusing integers longer than ``MAX_INT_DIGITS`` digits."""
@@ -174,11 +178,11 @@ class _BoundedLoader(yaml.SafeLoader):
         if self.check_event(yaml.AliasEvent):
             self._aliases += 1
             if self._aliases > MAX_YAML_ALIASES:
-                raise yaml.YAMLError(f"more than {MAX_YAML_ALIASES} aliases")
+                raise _Bound(f"more than {MAX_YAML_ALIASES} aliases")
         self._depth += 1
         try:
             if self._depth > MAX_DEPTH:
-                raise yaml.YAMLError(f"nested deeper than {MAX_DEPTH} levels")
+                raise _Bound(f"nested deeper than {MAX_DEPTH} levels")
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -186,7 +190,7 @@ class _BoundedLoader(yaml.SafeLoader):
     def construct_yaml_int(self, node: Any) -> int:
         digits = sum(ch.isdigit() for ch in str(node.value))
         if digits > MAX_INT_DIGITS:
-            raise yaml.YAMLError(f"an integer of {digits} digits (at most {MAX_INT_DIGITS})")
+            raise _Bound(f"an integer of {digits} digits (at most {MAX_INT_DIGITS})")
         return super().construct_yaml_int(node)
 
 
@@ -196,21 +200,28 @@ _BoundedLoader.add_constructor("tag:yaml.org,2002:int", _BoundedLoader.construct
 def load_yaml(text: str, error: type[Exception], what: str) -> Any:
     """YAML text parsed by the safe loader within the bounds above; ``error`` naming ``what``
     (and the line, where PyYAML knows it) for anything it cannot parse."""
-    loader = _BoundedLoader(text)
+    loader = None
     try:
+        loader = _BoundedLoader(text)  # refuses unprintable characters here already
         data = loader.get_single_data()
         if expanded_size(data) > MAX_NODES:  # aliases share objects; anything walking them does not
-            raise yaml.YAMLError(f"more than {MAX_NODES} values once its aliases are expanded")
+            raise _Bound(f"more than {MAX_NODES} values once its aliases are expanded")
         return data
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
-        bound = "" if mark is not None or isinstance(exc, yaml.MarkedYAMLError) else f" ({exc})"
-        raise error(f"{what}{where} is not valid YAML{bound}") from None
+        if isinstance(exc, _Bound):
+            why = f" ({exc})"
+        elif isinstance(exc, yaml.reader.ReaderError):
+            why = f" (character {exc.character!r} at position {exc.position} is not allowed)"
+        else:
+            why = ""
+        raise error(f"{what}{where} is not valid YAML{why}") from None
     except (ValueError, OverflowError, RecursionError, TypeError) as exc:
         raise error(f"{what} is not valid YAML ({type(exc).__name__})") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def expanded_size(obj: Any) -> int:
