@@ -59,6 +59,14 @@ def _flip(base: bytes, changes: list[tuple[int, int]]) -> bytes:
     return bytes(out)
 
 
+def _read_or_one_line(read, path: Path, error: type[Exception]) -> None:
+    """``read(path)`` gives a result or ``error`` with a one-line message; anything else fails."""
+    try:
+        read(path)
+    except error as exc:
+        assert "\n" not in str(exc)
+
+
 @pytest.fixture(scope="module")
 def work(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("fuzz")
@@ -84,10 +92,7 @@ KEYS = sorted(_flat(default_dict()))
 def test_config_files_give_a_config_or_one_config_error(work, text):
     path = work / "config.yaml"
     path.write_text(text, errors="surrogateescape")
-    try:
-        load_config(path)
-    except ConfigError as exc:
-        assert "\n" not in str(exc)
+    _read_or_one_line(load_config, path, ConfigError)
 
 
 @FUZZ
@@ -101,23 +106,12 @@ def test_overrides_give_a_config_or_one_config_error(key, value):
         assert "\n" not in str(exc) and len(str(exc)) < 600
 
 
-# --- model files ------------------------------------------------------------------------------
+# --- model files and logs ------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
 def model_bytes(work) -> bytes:
     return save_model(work / "base.safetensors", make_model(n_nets=2, hidden=(4,))).read_bytes()
-
-
-@FUZZ
-@given(data=st.data())
-def test_model_files_give_a_model_or_one_model_file_error(work, model_bytes, data):
-    path = work / "model.safetensors"
-    path.write_bytes(data.draw(_mutations(model_bytes)))
-    try:
-        load_model(path)
-    except ModelFileError as exc:
-        assert "\n" not in str(exc)
 
 
 @FUZZ
@@ -131,13 +125,7 @@ def test_model_metadata_gives_a_model_or_one_model_file_error(work, model_bytes,
     cfknode_meta[key] = meta
     path = work / "meta.safetensors"
     path.write_bytes(save(load(model_bytes), metadata={**header["__metadata__"], "cfknode": json.dumps(cfknode_meta)}))
-    try:
-        load_model(path)
-    except ModelFileError as exc:
-        assert "\n" not in str(exc)
-
-
-# --- flight logs ------------------------------------------------------------------------------
+    _read_or_one_line(load_model, path, ModelFileError)
 
 
 @pytest.fixture(scope="module")
@@ -147,13 +135,12 @@ def log_bytes(work) -> bytes:
 
 @FUZZ
 @given(data=st.data())
-def test_logs_are_read_around_damage_or_give_one_log_error(work, log_bytes, data):
-    path = work / "log.mcap"
-    path.write_bytes(data.draw(_mutations(log_bytes)))
-    try:
-        read_log(path)
-    except LogError as exc:
-        assert "\n" not in str(exc)
+def test_damaged_models_and_logs_give_a_result_or_one_error(work, model_bytes, log_bytes, data):
+    for base, name, read, error in ((model_bytes, "model.safetensors", load_model, ModelFileError),
+                                    (log_bytes, "log.mcap", read_log, LogError)):
+        path = work / name
+        path.write_bytes(data.draw(_mutations(base)))
+        _read_or_one_line(read, path, error)
 
 
 # --- the e-stop mailbox -----------------------------------------------------------------------
