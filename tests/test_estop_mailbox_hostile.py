@@ -167,3 +167,36 @@ def test_the_directory_is_created_private_and_a_readable_one_is_tightened(tmp_pa
         box.close()
     finally:
         os.umask(old)
+
+
+def test_estop_reaches_a_real_flight_whose_request_path_stays_blocked(tmp_path):
+    """`cfknode fly` (lockstep) in a subprocess, a directory left at its request path and a broken
+    presence file beside it: `cfknode estop` still stops the flight, by writing around the directory."""
+    import subprocess
+    import sys
+    import time
+
+    d = tmp_path / "estop"
+    cmd = [sys.executable, "-m", "cfknode", "fly", "--traj", "hover", "--duration", "600", "--controller",
+           "geometric", "--headless", "--json", "--log-dir", str(tmp_path), "--set", f"safety.estop_dir={d}"]
+    fly = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not scan_flights(d).flights and fly.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        (flight,) = scan_flights(d).flights
+        flight.request_path.mkdir()
+        _plant(d, f"flight-sim-cf9-{fly.pid}-0badf00d.json", {"robot": "sim-cf9", "id": f"{fly.pid}-0badf00d", "pid": fly.pid, "started": [0],
+                                                                  "proc_start": flight.proc_start})
+        estop = subprocess.run([sys.executable, "-m", "cfknode", "estop", "--dir", str(d), "--timeout", "30"],
+                               capture_output=True, text=True, timeout=120)
+        fly.communicate(timeout=120)
+    finally:
+        if fly.poll() is None:
+            fly.kill()
+            fly.wait()
+    assert estop.returncode == 0, estop.stderr
+    assert f"stop taken by the flight of 'sim-cf231' (pid {fly.pid}" in estop.stdout
+    assert "cfknode estop: skipped flight-sim-cf9-" in estop.stderr and "'started' is [0]" in estop.stderr
+    assert "Traceback" not in estop.stderr
+    assert fly.returncode == 1 and flight.request_path.is_dir()
