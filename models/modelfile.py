@@ -32,6 +32,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from cfknode.kernel.bounded_input import describe_os_error, load_json, open_regular
+
 FORMAT_NAME = "cfknode.knode"
 FORMAT_VERSION = 1
 INPUT_NAMES = ("vx", "vy", "vz", "ax", "ay", "az")
@@ -42,6 +44,8 @@ N_OUT = len(OUTPUT_NAMES)
 
 # A header larger than this is not one of ours (ours are a few kB): refuse before parsing it.
 _MAX_HEADER_BYTES = 16 * 1024 * 1024
+# A queue of 10 networks with two 1024-wide hidden layers is about 90 MB; the cap leaves room.
+MAX_MODEL_BYTES = 512 << 20
 
 
 class ModelFileError(ValueError):
@@ -171,47 +175,57 @@ def save_model(path: str | Path, model: ModelFile) -> Path:
 
 
 def load_model(path: str | Path) -> ModelFile:
-    """Read and validate a model file (numpy only, never unpickles); raises ``ModelFileError``."""
+    """Read and validate a model file (numpy only, never unpickles); raises ``ModelFileError``.
+
+    The 8-byte header length and the header are read and checked before the tensors, so a
+    file that is not one of ours is refused without reading its body."""
     path = Path(path)
     name = str(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ModelFileError(f"model file {name}: not found") from None
-    except OSError as exc:
-        raise ModelFileError(f"model file {name}: cannot read ({exc.strerror or exc})") from None
-    header = _read_header(data, name)
-    raw_meta = header.get("__metadata__")
-    if not isinstance(raw_meta, dict) or raw_meta.get("format") != FORMAT_NAME:
-        raise ModelFileError(f"model file {name}: not a cfknode KNODE model (no '{FORMAT_NAME}' format tag)")
-    try:
-        meta = json.loads(raw_meta.get("cfknode", ""))
-    except (json.JSONDecodeError, TypeError):
-        raise ModelFileError(f"model file {name}: metadata is not valid JSON") from None
-    if not isinstance(meta, dict):
-        raise ModelFileError(f"model file {name}: metadata must be a JSON object")
+    f, size = open_regular(path, MAX_MODEL_BYTES, ModelFileError, "model file")
+    with f:
+        try:
+            head = f.read(8)
+            n = _header_length(head, size, name)
+            header_bytes = f.read(n)
+            header = _read_header(header_bytes, n, size, name)
+            meta = _metadata(header, name)
+            body = f.read(size - 8 - n)
+        except OSError as exc:
+            raise ModelFileError(f"model file {name}: cannot read ({describe_os_error(exc)})") from None
     from safetensors.numpy import load
 
     try:
-        tensors = load(data)
+        tensors = load(head + header_bytes + body)
     except Exception as exc:  # safetensors raises its own error type for malformed buffers
-        raise ModelFileError(f"model file {name}: corrupt safetensors data ({_one_line(exc)})") from None
-    model = _model_from(meta, tensors, name)
+        raise ModelFileError(f"model file {name}: corrupt safetensors data ({_one_line(exc)[:120]})") from None
+    try:
+        model = _model_from(meta, tensors, name)
+    except ModelFileError:
+        raise
+    except (TypeError, ValueError, OverflowError, AttributeError, KeyError, IndexError):
+        raise ModelFileError(f"model file {name}: metadata has a value of the wrong type") from None
     _check_model(model, name)
     return model
 
 
-def _read_header(data: bytes, name: str) -> dict[str, Any]:
+def _header_length(head: bytes, size: int, name: str) -> int:
+    if len(head) < 8:
+        raise ModelFileError(f"model file {name}: too short to be a safetensors file ({size} bytes)")
+    (n,) = struct.unpack("<Q", head)
+    if n == 0 or n > _MAX_HEADER_BYTES or 8 + n > size:
+        raise ModelFileError(f"model file {name}: not a safetensors file or truncated (header length {n}, file {size} bytes)")
+    return n
+
+
+def _read_header(raw: bytes, n: int, size: int, name: str) -> dict[str, Any]:
     # Parse the header ourselves so a wrong file gets a precise message before any tensor is read.
-    if len(data) < 8:
-        raise ModelFileError(f"model file {name}: too short to be a safetensors file ({len(data)} bytes)")
-    (n,) = struct.unpack("<Q", data[:8])
-    if n == 0 or n > _MAX_HEADER_BYTES or 8 + n > len(data):
-        raise ModelFileError(f"model file {name}: not a safetensors file or truncated (header length {n}, file {len(data)} bytes)")
+    if len(raw) < n:
+        raise ModelFileError(f"model file {name}: truncated while reading its header")
     try:
-        header = json.loads(data[8 : 8 + n].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError):
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
         raise ModelFileError(f"model file {name}: not a safetensors file (header is not JSON)") from None
+    header = load_json(text, ModelFileError, f"model file {name}: not a safetensors file (header)")
     if not isinstance(header, dict):
         raise ModelFileError(f"model file {name}: not a safetensors file (header is not a JSON object)")
     ends = [
@@ -221,9 +235,22 @@ def _read_header(data: bytes, name: str) -> dict[str, Any]:
         and len(entry["data_offsets"]) == 2 and isinstance(entry["data_offsets"][1], int)
     ]
     expected = 8 + n + max(ends, default=0)
-    if expected > len(data):
-        raise ModelFileError(f"model file {name}: truncated ({len(data)} bytes, the header describes {expected})")
+    if expected > size:
+        raise ModelFileError(f"model file {name}: truncated ({size} bytes, the header describes {expected})")
     return header
+
+
+def _metadata(header: Mapping[str, Any], name: str) -> dict[str, Any]:
+    raw_meta = header.get("__metadata__")
+    if not isinstance(raw_meta, dict) or raw_meta.get("format") != FORMAT_NAME:
+        raise ModelFileError(f"model file {name}: not a cfknode KNODE model (no '{FORMAT_NAME}' format tag)")
+    text = raw_meta.get("cfknode", "")
+    if not isinstance(text, str):
+        raise ModelFileError(f"model file {name}: metadata is not valid JSON")
+    meta = load_json(text, ModelFileError, f"model file {name}: metadata")
+    if not isinstance(meta, dict):
+        raise ModelFileError(f"model file {name}: metadata must be a JSON object")
+    return meta
 
 
 def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name: str) -> ModelFile:
@@ -253,7 +280,9 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
         raise ModelFileError(f"model file {name}: 'networks' must be a list")
     stored_w = need(meta, "queue_weights")
     expected_w = queue_weights(len(nets_meta))
-    if not isinstance(stored_w, list) or len(stored_w) != len(nets_meta) or not np.allclose(
+    if not isinstance(stored_w, list) or len(stored_w) != len(nets_meta) or not all(
+        isinstance(w, (int, float)) and not isinstance(w, bool) for w in stored_w
+    ) or not np.allclose(
         np.asarray(stored_w, dtype=np.float64), expected_w, rtol=1e-12, atol=0.0
     ):
         raise ModelFileError(f"model file {name}: queue_weights disagree with e^(k-n) for {len(nets_meta)} networks")

@@ -5,7 +5,8 @@
 - ``landing``: the supervisor's own landing reference.
 - ``watchdogs``: persistence timers, battery filter, tilt, radio link health.
 - ``operator``: Ctrl-C, and the task that hands ``cfknode estop`` requests to the supervisor.
-- ``estop_mailbox``: the ``cfknode estop`` mailbox: flight identity, presence, requests.
+- ``estop_mailbox``: the ``cfknode estop`` mailbox: flight identity, presence, requests;
+  ``estop_files``: its small files, read bounded and written atomically.
 - ``preflight``: hardware pre-flight checks before the clock starts.
 """
 

@@ -1,14 +1,19 @@
 """The e-stop mailbox: the directory through which ``cfknode estop`` reaches a running flight.
 
 The directory (``$XDG_RUNTIME_DIR/cfknode``, else the cache directory) must belong to the user
-and be writable by nobody else; it is created with mode 0700. It holds, per flight:
+and be writable by nobody else; it is created with mode 0700, and a flight makes an existing
+one that others can read private. It holds, per flight:
 
 - ``flight-<robot>-<id>.json``: the flight's presence, written when it opens the mailbox and
   removed only by that flight. ``id`` is ``<pid>-<random hex>``; the file also holds the
   process's kernel start time, so a pid later reused by another process is not the flight.
-  Listing all live flights is a scan of these files (``live_flights``).
+  Listing all live flights is a scan of these files (``scan_flights``); one that cannot be
+  parsed, or that another user owns, is skipped and reported, never taken as a flight.
 - ``estop-<robot>-<id>.json``: a request ``{"action": "stop" | "land"}`` for that one flight,
   left by ``cfknode estop`` and deleted by the flight when taken, which is the acknowledgement.
+  Where something that cannot be replaced (a directory) blocks that path, the command writes
+  ``estop-<robot>-<id>.<8 hex>.json`` instead, and the flight looks for those while blocked.
+  A request that cannot be read or parsed is taken as a stop.
 - ``robot-<robot>.lock``: locked (``flock``) for the whole flight by a flight of a real robot,
   so a second flight of the same robot is refused. The kernel drops the lock when the process
   ends, however it ends; the empty file stays.
@@ -22,26 +27,29 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import json
+import math
 import os
 import re
 import secrets
 import stat
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from cfknode.kernel.bounded_input import quote
+from cfknode.safety.estop_files import MailboxError, parse_json, read_small, write_atomic
+from cfknode.safety.estop_files import kind as _kind
+from cfknode.safety.estop_files import pid_alive as _pid_alive
+from cfknode.safety.estop_files import proc_start as _proc_start
+
 ACTIONS = ("stop", "land")
 _SAFE = re.compile(r"[^A-Za-z0-9_.-]+")
 _ID = re.compile(r"^[0-9]+-[0-9a-f]{8}$")
-_MAX_BYTES = 4096  # presence and request files are a few hundred bytes
-_O_READ = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
-
-
-class MailboxError(Exception):
-    """The mailbox cannot be used as asked; the message is one line for the user."""
+_ALT = re.compile(r"^[0-9a-f]{8}$")
+# Without an obstacle at the request path, the flight looks for written-around requests this
+# seldom (in polls): a listing costs more than the one lstat of an ordinary poll.
+_ALT_SCAN_EVERY = 20
 
 
 class FlightRunning(MailboxError):
@@ -71,7 +79,8 @@ def safe_name(robot: str) -> str:
 
 def check_dir(directory: Path, create: bool = True) -> Path:
     """``directory``, made with mode 0700 if missing (and ``create``); MailboxError unless it is
-    a directory owned by this user that neither group nor others can write to."""
+    a directory owned by this user that neither group nor others can write to. One that others
+    can only read or enter is made private (chmod 700) when ``create`` (the flight's side)."""
     directory = Path(directory)
     if create:
         try:
@@ -91,6 +100,12 @@ def check_dir(directory: Path, create: bool = True) -> Path:
     if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
         raise MailboxError(f"the e-stop mailbox {directory} is writable by group or others "
                            f"(mode {stat.S_IMODE(st.st_mode):o}); make it private: chmod 700 {directory}")
+    if create and st.st_mode & 0o077:  # readable only: nothing planted, so tightening is safe
+        try:
+            os.chmod(directory, 0o700)
+        except OSError as exc:
+            raise MailboxError(f"the e-stop mailbox {directory} has mode {stat.S_IMODE(st.st_mode):o} and cannot "
+                               f"be made private ({_strerror(exc)}): chmod 700 {directory}") from None
     return directory
 
 
@@ -134,42 +149,72 @@ class FlightInfo:
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
         robot, flight_id, pid = d.get("robot"), d.get("id"), d.get("pid")
-        if not isinstance(robot, str) or not isinstance(flight_id, str) or not _ID.match(flight_id):
-            raise ValueError("no valid robot or id")
-        if not isinstance(pid, int) or pid <= 0 or flight_id.split("-")[0] != str(pid):
+        if not isinstance(robot, str) or not robot or len(robot) > 200:
+            raise ValueError("no valid robot name")
+        if not isinstance(flight_id, str) or not _ID.match(flight_id):
+            raise ValueError("no valid flight id")
+        if isinstance(pid, bool) or not isinstance(pid, int) or not 0 < pid < 1 << 31 or flight_id.split("-")[0] != str(pid):
             raise ValueError("no valid pid")
-        return cls(Path(directory), robot, flight_id, pid, float(d.get("started", 0.0)), str(d.get("proc_start", "")))
+        started, proc_start = d.get("started", 0.0), d.get("proc_start", "")
+        if isinstance(started, bool) or not isinstance(started, (int, float)) or not math.isfinite(started):
+            raise ValueError(f"'started' is {quote(started)}, not a time")
+        if not isinstance(proc_start, str) or not (proc_start == "" or proc_start.isdigit()):
+            raise ValueError(f"'proc_start' is {quote(proc_start)}, not a start time")
+        return cls(Path(directory), robot, flight_id, pid, float(started), proc_start)
 
 
-def live_flights(directory: Path) -> list[FlightInfo]:
-    """Every live flight announced in ``directory``, oldest first. Unreadable, foreign-looking
-    and dead flights' files are skipped (and left where they are: only a flight removes its own)."""
+@dataclass(frozen=True)
+class FlightScan:
+    """The live flights in a mailbox, and one line for each presence file that was skipped."""
+
+    flights: tuple[FlightInfo, ...]
+    skipped: tuple[str, ...]  # "<file>: <why>", for files that are not a usable presence
+
+
+def scan_flights(directory: Path) -> FlightScan:
+    """Every live flight announced in ``directory``, oldest first. A presence file that cannot
+    be read or parsed for any reason, or that another user owns, is skipped and reported;
+    dead flights' files are passed over. Nothing is removed: only a flight removes its own."""
     try:
         names = sorted(os.listdir(directory))
     except FileNotFoundError:
-        return []
+        return FlightScan((), ())
     except OSError as exc:
         raise MailboxError(f"cannot list the e-stop mailbox {directory}: {_strerror(exc)}") from None
-    flights = []
+    flights, skipped = [], []
     for name in names:
         if not (name.startswith("flight-") and name.endswith(".json")):
             continue
         try:
-            info = FlightInfo.from_json(Path(directory), json.loads(_read_small(Path(directory) / name)))
-        except (OSError, ValueError, MailboxError):
+            data = parse_json(read_small(Path(directory) / name, owner_only=True), Path(name))
+            info = FlightInfo.from_json(Path(directory), data)
+            if info.presence_path.name != name:
+                raise ValueError(f"it names {info.presence_path.name}")
+            alive = info.alive()
+        except FileNotFoundError:
+            continue  # removed by its flight while listed
+        except Exception as exc:  # noqa: BLE001 - no file may keep an e-stop from the other flights
+            skipped.append(f"{quote(name)[1:-1]}: {describe_error(exc)[:160]}")
             continue
-        if info.presence_path.name == name and info.alive():
+        if alive:
             flights.append(info)
-    return sorted(flights, key=lambda f: f.started)
+    return FlightScan(tuple(sorted(flights, key=lambda f: f.started)), tuple(skipped))
 
 
-def find_flight(directory: Path, robot: str | None = None, flight_id: str | None = None) -> FlightInfo:
+def live_flights(directory: Path) -> list[FlightInfo]:
+    """Every live flight announced in ``directory``, oldest first (``scan_flights`` without the report)."""
+    return list(scan_flights(directory).flights)
+
+
+def find_flight(directory: Path, robot: str | None = None, flight_id: str | None = None,
+                scan: FlightScan | None = None) -> FlightInfo:
     """The one live flight with that robot name and/or id (both None: the only live flight).
-    NoFlight when there is none; MailboxError, listing them, when several match."""
+    NoFlight when there is none; MailboxError, listing them, when several match. ``scan``:
+    one already made (the command reports what it skipped)."""
     if Path(directory).exists():
         check_dir(directory, create=False)  # a planted or shared directory could fake a flight
-    flights = [f for f in live_flights(directory)
-               if (robot is None or f.robot == robot) and (flight_id is None or f.id == flight_id)]
+    found = scan.flights if scan is not None else live_flights(directory)
+    flights = [f for f in found if (robot is None or f.robot == robot) and (flight_id is None or f.id == flight_id)]
     what = " ".join(filter(None, [f"of {robot!r}" if robot else "", f"with id {flight_id}" if flight_id else ""]))
     if not flights:
         raise NoFlight(f"no flight {what + ' ' if what else ''}is running (mailbox {directory})")
@@ -202,6 +247,7 @@ class EstopMailbox:
                                _proc_start(pid))
         self._lock_fd: int | None = None
         self._open = False
+        self._polls = 0
 
     @property
     def id(self) -> str:
@@ -232,7 +278,7 @@ class EstopMailbox:
             if same:  # the lock file was removed under a live flight
                 raise FlightRunning(f"{same[0].describe()} is already flying; a second flight of the same "
                                     "robot is refused")
-            _write_atomic(self.presence_path, self.info.to_json())
+            _write(self.presence_path, self.info.to_json())
         except BaseException:
             self._unlock()
             raise
@@ -245,15 +291,42 @@ class EstopMailbox:
         request file (a directory, a symbolic link, a FIFO; left alone) or cannot be taken. A
         request file that is taken but cannot be read or parsed is a stop, with a ``note``.
         """
+        self._polls += 1
         path = self.request_path
         try:
-            st = os.lstat(path)
+            st: os.stat_result | None = os.lstat(path)
         except FileNotFoundError:
-            return None
-        if not stat.S_ISREG(st.st_mode):
-            raise MailboxError(f"{path} is {_kind(st.st_mode)}, not a request file: ignored")
-        # Renamed first, so a request posted while this one is read lands beside it, not lost.
-        taken = self.directory / f".taken-{path.name}"
+            st = None
+        if st is not None and stat.S_ISREG(st.st_mode):
+            return self._take(path)
+        blocked = None if st is None else f"{path} is {_kind(st.st_mode)}, not a request file: ignored"
+        # A command that found the request path blocked wrote around it (``post``): look for
+        # that at once when it is blocked, and now and then in case the obstacle went away since.
+        if blocked is not None or self._polls % _ALT_SCAN_EVERY == 0:
+            for alternate in self._alternates():
+                got = self._take(alternate)
+                if got is not None:
+                    return got if got.note or blocked is None else Request(got.action, f"{blocked}; {got.action} "
+                                                                                       f"taken from {alternate.name}")
+        if blocked is not None:
+            raise MailboxError(blocked)
+        return None
+
+    def _alternates(self) -> list[Path]:
+        """This flight's written-around requests, ``estop-<robot>-<id>.<8 hex>.json``, oldest name first."""
+        stem = self.request_path.name[: -len(".json")] + "."
+        try:
+            names = os.listdir(self.directory)
+        except FileNotFoundError:
+            return []
+        picked = [n for n in names if n.startswith(stem) and n.endswith(".json") and _ALT.match(n[len(stem):-5])]
+        return [self.directory / n for n in sorted(picked)]
+
+    def _take(self, path: Path) -> Request | None:
+        """The request at ``path`` (a regular file when listed), consumed; None if it is gone."""
+        # Renamed first, so a request posted while this one is read lands beside it, not lost;
+        # under a unique name, so nothing planted at a fixed name can block the taking.
+        taken = self.directory / f".taken-{path.name}.{secrets.token_hex(4)}"
         try:
             os.rename(path, taken)
         except FileNotFoundError:
@@ -262,14 +335,15 @@ class EstopMailbox:
         # from it is taken as the stronger action.
         try:
             raw = _read_small(taken)
-        except (OSError, MailboxError) as exc:
-            return Request("stop", f"unreadable e-stop request ({describe_error(exc)}) taken as stop")
+        except Exception as exc:  # noqa: BLE001 - see above
+            return Request("stop", f"unreadable e-stop request ({describe_error(exc)[:160]}) taken as stop")
         finally:
             with contextlib.suppress(OSError):
                 os.unlink(taken)
         try:
-            action = json.loads(raw).get("action")
-        except (ValueError, AttributeError):
+            data = parse_json(raw, path)
+            action = data.get("action") if isinstance(data, dict) else None
+        except MailboxError:
             action = None
         if action in ACTIONS:
             return Request(action)
@@ -281,12 +355,13 @@ class EstopMailbox:
             return
         self._open = False
         with contextlib.suppress(OSError, ValueError, MailboxError):
-            mine = FlightInfo.from_json(self.directory, json.loads(_read_small(self.presence_path)))
+            mine = FlightInfo.from_json(self.directory, parse_json(_read_small(self.presence_path), self.presence_path))
             if mine.id == self.id:
                 os.unlink(self.presence_path)
-        with contextlib.suppress(OSError):
-            if stat.S_ISREG(os.lstat(self.request_path).st_mode):
-                os.unlink(self.request_path)  # addressed to this flight only: nobody else will take it
+        for request_path in (self.request_path, *self._alternates()):
+            with contextlib.suppress(OSError):
+                if stat.S_ISREG(os.lstat(request_path).st_mode):
+                    os.unlink(request_path)  # addressed to this flight only: nobody else will take it
         self._unlock()
 
     def _lock(self) -> None:
@@ -318,102 +393,68 @@ class EstopMailbox:
 # --- the command's side ---------------------------------------------------------------------
 
 
-def post(flight: FlightInfo, action: str) -> int:
-    """Leave ``action`` for ``flight`` without waiting; returns the request file's inode."""
+@dataclass(frozen=True)
+class Posted:
+    """Where a request was left, and its inode (to withdraw only our own)."""
+
+    path: Path
+    inode: int
+
+
+def post(flight: FlightInfo, action: str) -> Posted:
+    """Leave ``action`` for ``flight`` without waiting. When something that cannot be replaced
+    (a directory) sits at the request path, the request is written around it under
+    ``estop-<robot>-<id>.<8 hex>.json``, which the flight looks for as soon as its path is blocked."""
     if action not in ACTIONS:
         raise ValueError(f"e-stop action must be one of {ACTIONS}, got {action!r}")
-    return _write_atomic(flight.request_path, {"action": action, "id": flight.id, "pid": os.getpid(),
-                                               "time": time.time()})
+    payload = {"action": action, "id": flight.id, "pid": os.getpid(), "time": time.time()}
+    path = flight.request_path
+    try:
+        return Posted(path, write_atomic(path, payload))
+    except OSError as exc:
+        blocked = exc
+    around = path.with_name(f"{path.name[: -len('.json')]}.{secrets.token_hex(4)}.json")
+    try:
+        return Posted(around, write_atomic(around, payload))
+    except OSError as exc:
+        raise MailboxError(f"cannot write {path} ({_strerror(blocked)}) nor {around.name} ({_strerror(exc)})") from None
 
 
 def request(flight: FlightInfo, action: str, timeout: float = 2.0, poll_s: float = 0.01) -> bool:
     """``post`` and wait until the flight takes it; False (and the request withdrawn) if it
     did not within ``timeout`` seconds or its process ended."""
-    inode = post(flight, action)
+    posted = post(flight, action)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
-            st = os.lstat(flight.request_path)
+            st = os.lstat(posted.path)
         except FileNotFoundError:
             return True
-        if st.st_ino != inode or not flight.alive():
+        if st.st_ino != posted.inode or not flight.alive():
             break
         time.sleep(poll_s)
     with contextlib.suppress(OSError):
-        if os.lstat(flight.request_path).st_ino == inode:  # withdraw our own request only
-            os.unlink(flight.request_path)
+        if os.lstat(posted.path).st_ino == posted.inode:  # withdraw our own request only
+            os.unlink(posted.path)
     return False
 
 
 # --- files ----------------------------------------------------------------------------------
 
 
-def _write_atomic(path: Path, payload: dict[str, Any]) -> int:
-    """Write ``payload`` under an unpredictable name beside ``path`` (mode 0600) and rename it
-    over ``path``: a symbolic link there is replaced, never followed. Returns the inode."""
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise MailboxError(f"cannot write in the e-stop mailbox {path.parent}: {_strerror(exc)}") from None
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f)
-            inode = os.fstat(f.fileno()).st_ino
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise MailboxError(f"cannot write {path}: {_strerror(exc)}") from None
-        raise
-    return inode
-
-
 def _read_small(path: Path) -> bytes:
-    """A small regular file's bytes, not through a symbolic link and without blocking."""
-    fd = os.open(path, _O_READ)
+    return read_small(path)
+
+
+def _write(path: Path, payload: dict[str, Any]) -> int:
     try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise MailboxError(f"{path} is {_kind(mode)}, not a regular file")
-        data = os.read(fd, _MAX_BYTES + 1)
-    finally:
-        os.close(fd)
-    if len(data) > _MAX_BYTES:
-        raise MailboxError(f"{path} is larger than {_MAX_BYTES} bytes")
-    return data
-
-
-def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"),
-                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket")):
-        if test(mode):
-            return name
-    return "not a regular file"
+        return write_atomic(path, payload)
+    except OSError as exc:
+        raise MailboxError(f"cannot write {path}: {_strerror(exc)}") from None
 
 
 def _strerror(exc: OSError) -> str:
     return exc.strerror or str(exc) or type(exc).__name__
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # exists, owned by someone else
-    return True
-
-
-def _proc_start(pid: int) -> str:
-    """The process's start time in clock ticks since boot (Linux ``/proc``), "" elsewhere."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-        return fields[19].decode()  # field 22 of the line; fields[0] here is field 3
-    except (OSError, IndexError):
-        return ""
 
 
 def describe_error(exc: BaseException) -> str:

@@ -16,6 +16,7 @@ import pytest
 
 from cfknode.app.cli import main
 from cfknode.app.logs.writer import read_log
+from cfknode.safety import estop_files
 from cfknode.safety import estop_mailbox as em
 from cfknode.safety.estop_mailbox import (
     EstopMailbox,
@@ -204,14 +205,14 @@ def test_requests_are_written_under_unpredictable_names(tmp_path, monkeypatch):
     box = EstopMailbox(tmp_path, "cf1")
     box.open()
     made: list[str] = []
-    real = em.tempfile.mkstemp
+    real = estop_files.tempfile.mkstemp
 
     def spy(*args, **kwargs):
         fd, name = real(*args, **kwargs)
         made.append(name)
         return fd, name
 
-    monkeypatch.setattr(em.tempfile, "mkstemp", spy)
+    monkeypatch.setattr(estop_files.tempfile, "mkstemp", spy)
     post(find_flight(tmp_path), "land")
     assert len(made) == 1 and Path(made[0]).parent == tmp_path and not Path(made[0]).exists()
     assert box.poll().action == "land"

@@ -186,7 +186,7 @@ def test_fifo_device_and_directory_are_refused_without_reading(tmp_path, capsys)
         for command in ("plot", "replay", "train"):
             code, _, err = run(capsys, *commands(path, tmp_path / "out")[command])
             assert code == 2
-            one_line(err, path, kind, "not a flight log file")
+            one_line(err, path, kind, "not a regular file")
 
 
 def test_the_magic_is_checked_first_and_lengths_are_bounded(flight, tmp_path, capsys):

@@ -20,6 +20,7 @@ import yaml
 
 from cfknode.app.fleet_settings import FleetConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
+from cfknode.kernel.bounded_input import QUOTE_CHARS, load_yaml, quote, read_regular
 from cfknode.kernel.errors import ConfigError
 from cfknode.kernel.vehicle import Vec3, VehicleConfig
 from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
@@ -258,34 +259,36 @@ def build_config(data: Mapping[str, Any]) -> Config:
     for key, ok, what in _RULES:
         value = _get(cfg, key)
         if not ok(value):
-            raise ConfigError(f"config key '{key}' must be {what}, got {value!r}")
+            raise ConfigError(f"config key '{key}' must be {what}, got {quote(value)}")
     return cfg
 
 
 def parse_override(text: str) -> tuple[str, Any]:
     """Parse ``key.path=value`` (value in YAML syntax) from ``--set``."""
     if "=" not in text:
-        raise ConfigError(f"--set expects key=value, got {text!r}")
+        raise ConfigError(f"--set expects key=value, got {quote(text)}")
     key, raw = text.split("=", 1)
     try:
-        value = yaml.safe_load(raw)
-    except yaml.YAMLError:
-        raise ConfigError(f"--set {key}: cannot parse value {raw!r}") from None
+        value = load_yaml(raw, ConfigError, "the value")
+    except ConfigError as exc:
+        raise ConfigError(f"--set {key.strip()[:QUOTE_CHARS]}: cannot parse value {quote(raw)}: {exc}") from None
     return key.strip(), value
+
+
+# Config and robots files are a few kB; a cap keeps a huge or endless file from filling memory.
+MAX_YAML_BYTES = 1 << 20
 
 
 def read_yaml_mapping(path: Path, what: str = "config file") -> dict[str, Any]:
     """A YAML file holding a mapping; a missing file or bad YAML is a one-line ConfigError naming it."""
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise ConfigError(f"{what} not found: {path}")
+    raw = read_regular(path, MAX_YAML_BYTES, ConfigError, what)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{what} {path}{where} is not valid YAML") from None
+    data = load_yaml(text, ConfigError, f"{what} {path}")
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -339,7 +342,7 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
     if origin is Literal:
         choices = typing.get_args(tp)
         if value not in choices:
-            raise ConfigError(f"config key '{key}' must be one of {', '.join(map(str, choices))}; got {value!r}")
+            raise ConfigError(f"config key '{key}' must be one of {', '.join(map(str, choices))}; got {quote(value)}")
         return value
     if origin is tuple:
         args = typing.get_args(tp)
@@ -352,7 +355,7 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
         return tuple(_coerce(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
+            raise ConfigError(f"config key '{key}' must be true or false, got {quote(value)}")
         return value
     if tp in (int, float) and isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
         # YAML reads 1e-9 (an exponent without a decimal point) as a string.
@@ -360,18 +363,21 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
         value = int(number) if tp is int and number.is_integer() else number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
+            raise ConfigError(f"config key '{key}' must be an integer, got {quote(value)}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"config key '{key}' must be a number, got {value!r}")
-        value = float(value)
+            raise ConfigError(f"config key '{key}' must be a number, got {quote(value)}")
+        try:
+            value = float(value)
+        except OverflowError:
+            raise ConfigError(f"config key '{key}' must be finite, got {quote(value)}") from None
         if value != value or value in (float("inf"), float("-inf")):
-            raise ConfigError(f"config key '{key}' must be finite, got {value!r}")
+            raise ConfigError(f"config key '{key}' must be finite, got {quote(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"config key '{key}' must be a string, got {value!r}")
+            raise ConfigError(f"config key '{key}' must be a string, got {quote(value)}")
         return value
     if isinstance(tp, types.UnionType) or origin is typing.Union:
         args = tuple(a for a in typing.get_args(tp) if a is not type(None))

@@ -84,10 +84,24 @@ def build_model_slot(cfg: Config) -> ModelSlot | None:
     from cfknode.models.residual_np import ResidualQueue
 
     try:
-        queue = ResidualQueue.from_model_file(load_model(ctrl.model))
+        model_file = load_model(ctrl.model)
     except ModelFileError as exc:
         raise ConfigError(f"refusing to fly: {exc}") from None
+    queue = ResidualQueue.from_model_file(model_file)
+    refuse_implausible_model(cfg, model_file, queue)
     return ModelSlot(queue, version=1)
+
+
+def refuse_implausible_model(cfg: Config, model_file: Any, queue: Any) -> None:
+    """The online gate's residual rules on the operating envelope, before take-off: a finite but
+    absurd model (say, weights scaled by 1e300) would fail the MPC on every tick."""
+    from cfknode.app.learning import gate_limits
+    from cfknode.flight.learning.gate import residual_verdict
+
+    limits = gate_limits(cfg)
+    reason, _ = residual_verdict(model_file, queue, limits.envelope_x, limits.envelope_u, limits.max_residual)
+    if reason:
+        raise ConfigError(f"refusing to fly: model file {cfg.controller.model}: implausible on the operating envelope ({reason})")
 
 
 def run_flight(

@@ -202,6 +202,22 @@ def model_is_finite(model: ModelFile) -> bool:
     )
 
 
+def residual_verdict(model_file: ModelFile, model: ResidualQueue, xs: np.ndarray, us: np.ndarray,
+                     max_residual: float) -> tuple[str, float]:
+    """The gate's first rules: finite weights, and a finite residual no larger than ``max_residual``
+    at every (xs, us). Returns (why it is refused, "" if it is not; the largest |residual|).
+    Also what a model file given for a flight must pass before take-off."""
+    if not model_is_finite(model_file):
+        return "non-finite weights", math.nan
+    with np.errstate(over="ignore", invalid="ignore"):  # an absurd model overflows: that is the verdict
+        peak = float(np.max(np.abs(model.evaluate(xs, us))))
+    if not math.isfinite(peak):
+        return "non-finite residual", peak
+    if peak > max_residual:
+        return f"residual {peak:.3g} m/s^2 exceeds knode.max_residual {max_residual:g}", peak
+    return "", peak
+
+
 JACOBIAN_CHUNK = 20  # nodes per linearise call: the MPC's own batch size
 
 
@@ -240,17 +256,12 @@ def gate_steps(
     """``run_gate`` in slices of a fraction of a millisecond: the flight loop runs one per tick gap."""
     nan = math.nan
     n = len(fresh)
-    if not model_is_finite(candidate_file):
-        return GateVerdict(False, "non-finite weights", nan, nan, nan, nan, n)
     envelope_x = envelope_for(limits, recent_x)
     xs = np.concatenate((recent_x, envelope_x))
     us = np.concatenate((recent_u, limits.envelope_u))
-    peak = float(np.max(np.abs(candidate.evaluate(xs, us))))
-    if not math.isfinite(peak):
-        return GateVerdict(False, "non-finite residual", nan, nan, nan, peak, n)
-    if peak > limits.max_residual:
-        return GateVerdict(False, f"residual {peak:.3g} m/s^2 exceeds knode.max_residual {limits.max_residual:g}",
-                           nan, nan, nan, peak, n)
+    reason, peak = residual_verdict(candidate_file, candidate, xs, us, limits.max_residual)
+    if reason:
+        return GateVerdict(False, reason, nan, nan, nan, peak, n)
     yield
     # The MPC's Jacobians, at every 8th recent point and all envelope points, in the MPC's own
     # batch size: one call over ~150 nodes crossed OpenBLAS's threading threshold and took 10x

@@ -27,7 +27,8 @@ from typing import Any, Mapping
 
 import yaml
 
-from cfknode.app.config import ConfigError, VehicleConfig, read_yaml_mapping
+from cfknode.app.config import MAX_YAML_BYTES, ConfigError, VehicleConfig, read_yaml_mapping
+from cfknode.kernel.bounded_input import quote, read_regular
 
 FILEVERSION = 3
 CMD_FULL_SCALE = 65535  # the motor command at which a motor gives thrust_max_per_motor
@@ -99,7 +100,7 @@ class RobotsFile:
     def robot(self, name: str) -> Robot:
         if name not in self.robots:
             known = ", ".join(sorted(self.robots)) or "none"
-            raise ConfigError(f"robots file {self.path}: no robot {name!r} (robots: {known})")
+            raise ConfigError(f"robots file {self.path}: no robot {quote(name)} (robots: {known})")
         return self.robots[name]
 
 
@@ -114,7 +115,7 @@ def load_robots(path: str | Path | None = None) -> RobotsFile:
     data = _read(file)
     where = str(file)
     if data.get("fileversion") != FILEVERSION:
-        raise ConfigError(f"robots file {where}: 'fileversion' must be {FILEVERSION}, got {data.get('fileversion')!r}")
+        raise ConfigError(f"robots file {where}: 'fileversion' must be {FILEVERSION}, got {quote(data.get('fileversion'))}")
     for key in data:
         if key not in _TOP_KEYS:
             raise ConfigError(f"robots file {where}: unknown key '{key}' (expected {', '.join(_TOP_KEYS)})")
@@ -172,12 +173,12 @@ def _resolve(name: str, entry: Mapping[str, Any], types: Mapping[str, Any], comm
     if not isinstance(type_name, str):
         raise ConfigError(f"robots file {where}: '{key}.type' must name an entry of robot_types")
     if type_name not in types:
-        raise ConfigError(f"robots file {where}: '{key}.type' is {type_name!r}, which is not in robot_types")
+        raise ConfigError(f"robots file {where}: '{key}.type' is {quote(type_name)}, which is not in robot_types")
     merged = _deep_merge(_deep_merge(common, types[type_name] or {}), entry)
 
     def need(k: str) -> Any:
         if k not in merged or merged[k] is None:
-            raise ConfigError(f"robots file {where}: robot {name!r} has no '{k}' (in its entry, its type or all)")
+            raise ConfigError(f"robots file {where}: robot {quote(name)} has no '{k}' (in its entry, its type or all)")
         return merged[k]
 
     uri = need("uri")
@@ -193,8 +194,8 @@ def _resolve(name: str, entry: Mapping[str, Any], types: Mapping[str, Any], comm
     thrust_max = _positive(need("thrust_max_per_motor"), where, f"{name}: thrust_max_per_motor")
     hover = merged.get("hover_thrust")
     if hover is not None and (isinstance(hover, bool) or not isinstance(hover, int) or not 0 < hover <= CMD_FULL_SCALE):
-        raise ConfigError(f"robots file {where}: robot {name!r} hover_thrust must be an integer command in "
-                          f"1..{CMD_FULL_SCALE}, got {hover!r}")
+        raise ConfigError(f"robots file {where}: robot {quote(name)} hover_thrust must be an integer command in "
+                          f"1..{CMD_FULL_SCALE}, got {quote(hover)}")
     battery = _battery(_mapping(need("battery"), where, f"{key}.battery"), where, name)
     params = _flatten_params(_mapping(merged.get("firmware_params", {}), where, f"{key}.firmware_params"),
                              where, name)
@@ -219,23 +220,23 @@ def _is_number(v: Any) -> bool:
 
 def _positive(v: Any, where: str, what: str) -> float:
     if not _is_number(v) or v <= 0:
-        raise ConfigError(f"robots file {where}: {what} must be a number > 0, got {v!r}")
+        raise ConfigError(f"robots file {where}: {what} must be a number > 0, got {quote(v)}")
     return float(v)
 
 
 def _battery(entry: Mapping[str, Any], where: str, name: str) -> BatteryLimits:
     for k in entry:
         if k not in _BATTERY_KEYS:
-            raise ConfigError(f"robots file {where}: unknown key 'battery.{k}' for robot {name!r}")
+            raise ConfigError(f"robots file {where}: unknown key 'battery.{k}' for robot {quote(name)}")
     values = {}
     for k in _BATTERY_KEYS:
         v = entry.get(k)
         if not _is_number(v) or not 2.5 <= v <= 4.5:
-            raise ConfigError(f"robots file {where}: robot {name!r} battery.{k} must be a voltage in 2.5..4.5 V, got {v!r}")
+            raise ConfigError(f"robots file {where}: robot {quote(name)} battery.{k} must be a voltage in 2.5..4.5 V, got {quote(v)}")
         values[k] = float(v)
     limits = BatteryLimits(**values)
     if not limits.voltage_land < limits.voltage_critical <= limits.voltage_warning:
-        raise ConfigError(f"robots file {where}: robot {name!r} battery needs voltage_land < voltage_critical "
+        raise ConfigError(f"robots file {where}: robot {quote(name)} battery needs voltage_land < voltage_critical "
                           f"<= voltage_warning, got {limits.voltage_land}, {limits.voltage_critical}, "
                           f"{limits.voltage_warning}")
     return limits
@@ -245,12 +246,12 @@ def _flatten_params(params: Mapping[str, Any], where: str, name: str) -> dict[st
     out: dict[str, float] = {}
     for group, entries in params.items():
         if not isinstance(entries, dict):
-            raise ConfigError(f"robots file {where}: robot {name!r} firmware_params.{group} must be a mapping of name: value")
+            raise ConfigError(f"robots file {where}: robot {quote(name)} firmware_params.{group} must be a mapping of name: value")
         for param, value in entries.items():
             if isinstance(value, bool):
                 value = int(value)
             if not _is_number(value):
-                raise ConfigError(f"robots file {where}: robot {name!r} firmware_params.{group}.{param} must be a number")
+                raise ConfigError(f"robots file {where}: robot {quote(name)} firmware_params.{group}.{param} must be a number")
             out[f"{group}.{param}"] = value
     return out
 
@@ -271,17 +272,17 @@ def write_robot_values(
     file = Path(path)
     original = _read(file)
     if name not in _mapping(original.get("robots"), str(file), "robots"):
-        raise ConfigError(f"robots file {file}: no robot {name!r} to update")
+        raise ConfigError(f"robots file {file}: no robot {quote(name)} to update")
     written = {k: yaml.safe_load(_yaml_number(v)) for k, v in values.items()}
-    text = file.read_text()
+    text = read_regular(file, MAX_YAML_BYTES, ConfigError, "robots file").decode("utf-8")  # _read checked it is UTF-8
     new_text = _set_robot_keys(text, name, values, comment, file)
     try:
         updated = yaml.safe_load(new_text)
     except yaml.YAMLError:
-        raise ConfigError(f"robots file {file}: could not update robot {name!r} safely; edit it by hand") from None
+        raise ConfigError(f"robots file {file}: could not update robot {quote(name)} safely; edit it by hand") from None
     expected = _deep_merge(original, {"robots": {name: written}})
     if updated != expected:
-        raise ConfigError(f"robots file {file}: could not update robot {name!r} safely; edit it by hand: "
+        raise ConfigError(f"robots file {file}: could not update robot {quote(name)} safely; edit it by hand: "
                           + ", ".join(f"{k}: {v}" for k, v in values.items()))
     _atomic_write(file, new_text)
     return written
@@ -316,7 +317,7 @@ def _set_robot_keys(text: str, name: str, values: Mapping[str, float | int], com
             start = i
             break
     if start is None:
-        raise ConfigError(f"robots file {file}: robot {name!r} is not a block-style entry under 'robots:'")
+        raise ConfigError(f"robots file {file}: robot {quote(name)} is not a block-style entry under 'robots:'")
     end = start + 1  # one past the block's last content line
     child_indent = None
     for i in range(start + 1, len(lines)):

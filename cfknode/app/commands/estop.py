@@ -31,8 +31,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cfknode.app.commands.estop_all import report_skipped
     from cfknode.app.config import ConfigError
-    from cfknode.safety.estop_mailbox import MailboxError, NoFlight, find_flight, mailbox_dir, request
+    from cfknode.safety.estop_mailbox import (
+        MailboxError, NoFlight, check_dir, find_flight, mailbox_dir, request, scan_flights,
+    )
 
     cfg = config_from_args(args, flags={"dir": "safety.estop_dir"})
     action = "land" if args.land else "stop"
@@ -42,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
 
         return estop_all(directory, action, args.timeout)
     try:
-        flight = find_flight(directory, args.robot, args.flight_id)
+        if directory.exists():
+            check_dir(directory, create=False)  # before reading anything in it
+        flight = find_flight(directory, args.robot, args.flight_id, scan=report_skipped(scan_flights(directory)))
     except NoFlight as exc:
         print(f"cfknode estop: {exc}", file=sys.stderr)
         return 1

@@ -7,7 +7,7 @@ import threading
 from pathlib import Path
 
 from cfknode.app.config import ConfigError
-from cfknode.safety.estop_mailbox import FlightInfo, MailboxError, check_dir, live_flights, request
+from cfknode.safety.estop_mailbox import FlightInfo, FlightScan, MailboxError, check_dir, request, scan_flights
 
 
 def estop_all(directory: Path, action: str, timeout: float) -> int:
@@ -18,7 +18,7 @@ def estop_all(directory: Path, action: str, timeout: float) -> int:
             check_dir(directory, create=False)  # a planted or shared directory could fake flights
         except MailboxError as exc:
             raise ConfigError(str(exc)) from None
-    flights = live_flights(directory)
+    flights = report_skipped(scan_flights(directory)).flights
     if not flights:
         print(f"cfknode estop: no flight is running (mailbox {directory})", file=sys.stderr)
         return 1
@@ -43,3 +43,10 @@ def estop_all(directory: Path, action: str, timeout: float) -> int:
         print(f"cfknode estop: {action} {verdict} by the flight of {f.robot!r} (pid {f.pid}, id {f.id})",
               file=sys.stdout if ok else sys.stderr)
     return 0 if failed == 0 else 1
+
+
+def report_skipped(scan: FlightScan) -> FlightScan:
+    """One line on stderr per presence file that is not a usable flight (it never stops the e-stop)."""
+    for line in scan.skipped:
+        print(f"cfknode estop: skipped {line}", file=sys.stderr)
+    return scan

@@ -17,7 +17,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import stat
 import struct
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -28,10 +27,12 @@ from typing import Any, BinaryIO
 import lz4.frame
 import zstandard
 from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 
 from cfknode.app.logs.data import ColumnSink, LogColumns, LogDamage, LogData, require_messages
+from cfknode.kernel.bounded_input import open_regular
 from cfknode.app.logs.format import MCAP_MAGIC, METADATA_NAME, LogError, message_checker
 
 __all__ = ["LogColumns", "LogDamage", "LogData", "LogError", "MAX_RECORD_BYTES", "read_columns", "read_log",
@@ -40,11 +41,14 @@ __all__ = ["LogColumns", "LogDamage", "LogData", "LogError", "MAX_RECORD_BYTES",
 # Far above any chunk a writer makes (cfknode: 128 KiB; other tools: a few MiB). A record
 # claiming more is a broken length field, and reading it would take unbounded memory.
 MAX_RECORD_BYTES = 256 << 20
+# Logs are streamed a record at a time, so the cap is far above any flight's (hours at 400 Hz).
+MAX_LOG_BYTES = 64 << 30
 _HEADER = struct.Struct("<BQ")  # opcode, record length
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK = struct.Struct("<QQQI")  # start time, end time, uncompressed size, uncompressed CRC
 # What decoding a complete record with bad contents raises (lengths, UTF-8, decompression).
-_BAD_RECORD = (ValueError, struct.error, EOFError, RuntimeError, zstandard.ZstdError)
+_BAD_RECORD = (ValueError, struct.error, EOFError, RuntimeError, zstandard.ZstdError, McapError, IndexError,
+               OverflowError, MemoryError)
 
 
 class _BadRecord(Exception):
@@ -87,32 +91,7 @@ def read_columns(path: str | Path, fields: Mapping[str, Sequence[str]], whole: S
 
 def open_log_file(path: Path) -> tuple[BinaryIO, int]:
     """Open a regular file for reading and return it with its size; ``LogError`` for anything else."""
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read flight log ({exc.strerror or exc})") from None
-    _require_regular(path, st.st_mode)
-    try:
-        # Non-blocking: a FIFO swapped in after the stat must not hang the open.
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    except OSError as exc:
-        raise LogError(f"{path}: cannot read flight log ({exc.strerror or exc})") from None
-    st = os.fstat(fd)
-    try:
-        _require_regular(path, st.st_mode)
-    except LogError:
-        os.close(fd)
-        raise
-    return os.fdopen(fd, "rb", buffering=1 << 20), st.st_size
-
-
-def _require_regular(path: Path, mode: int) -> None:
-    if stat.S_ISREG(mode):
-        return
-    kinds = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
-    kind = next((name for test, name in kinds if test(mode)), "not a regular file")
-    raise LogError(f"{path}: {kind}, not a flight log file")
+    return open_regular(path, MAX_LOG_BYTES, LogError, "flight log", buffering=1 << 20)
 
 
 @dataclass
