@@ -19,7 +19,7 @@ def _bandlimited(rng: np.random.Generator, t: np.ndarray, rms: float, low_hz: fl
     return x * (rms / np.sqrt(np.mean(x**2, axis=0)))
 
 
-def _fly(t: np.ndarray, u: np.ndarray, noise: np.ndarray, climb_gain: float, substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def _fly(t: np.ndarray, u: np.ndarray, noise: np.ndarray, climb_gain: float, substeps: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Integrate p' = v, v' = u + noise + climb_gain v_z e3 (u and the noise held per sample), from rest at 1 m."""
     p, v = np.zeros((t.size, 3)), np.zeros((t.size, 3))
     pk, vk = np.array([0.0, 0.0, 1.0]), np.zeros(3)

@@ -9,13 +9,15 @@ thrust_cmd`` (the RPYT command); an optional ``manoeuvre`` column groups samples
 from __future__ import annotations
 
 import csv
+import io
 import math
-import stat
 from collections.abc import Mapping
 from pathlib import Path
+from typing import BinaryIO, TextIO
 
 import numpy as np
 
+from cfknode.kernel.bounded_input import open_regular
 from cfknode.kernel.errors import ConfigError
 
 MAX_BYTES = 2 * 1024**3  # a table larger than this is refused before it is read
@@ -47,22 +49,15 @@ def parse_column_map(spec: str | None) -> dict[str, str]:
 def read_table(path: str | Path, columns: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
     """The schema's columns present in ``path`` (.csv or .parquet) as float arrays (``manoeuvre`` as str)."""
     path = Path(path)
-    try:
-        info = path.stat()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(info.st_mode):
-        raise ConfigError(f"{path}: not a regular file")
-    if info.st_size > MAX_BYTES:
-        raise ConfigError(f"{path}: {info.st_size} bytes, over the {MAX_BYTES} byte limit for a flight table")
     names = {ours: (columns or {}).get(ours, ours) for ours in (*REQUIRED, *OPTIONAL)}
     suffix = path.suffix.lower()
-    if suffix == ".csv":
-        raw = _read_csv(path, set(names.values()))
-    elif suffix in (".parquet", ".pq"):
-        raw = _read_parquet(path, set(names.values()))
-    else:
+    if suffix not in (".csv", ".parquet", ".pq"):
         raise ConfigError(f"{path}: a flight table is .csv or .parquet (or give a cfknode .mcap log with --log)")
+    # A regular file under the cap, opened once: no FIFO, device or /dev/zero link is read.
+    fh, _ = open_regular(path, MAX_BYTES, ConfigError, "flight table")
+    with fh:
+        raw = (_read_csv(io.TextIOWrapper(fh, newline=""), path, set(names.values())) if suffix == ".csv"
+               else _read_parquet(fh, path, set(names.values())))
     missing = [ours for ours in REQUIRED if names[ours] not in raw]
     if missing:
         raise ConfigError(f"{path}: no column {', '.join(names[m] for m in missing)} (map yours with --columns)")
@@ -82,27 +77,26 @@ def read_table(path: str | Path, columns: Mapping[str, str] | None = None) -> di
     return table
 
 
-def _read_csv(path: Path, wanted: set[str]) -> dict[str, list[str] | np.ndarray]:
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ConfigError(f"{path}: empty file") from None
-        except csv.Error as exc:
-            raise ConfigError(f"{path}: not a CSV table ({_short(str(exc))})") from None
-        keep = [(i, h) for i, h in enumerate(header) if h in wanted]
-        cols: dict[str, list[str]] = {h: [] for _, h in keep}
-        try:
-            for n, row in enumerate(reader, start=2):
-                if n > MAX_ROWS:
-                    raise ConfigError(f"{path}: over {MAX_ROWS} rows")
-                if len(row) != len(header):
-                    raise ConfigError(f"{path}: line {n} has {len(row)} fields, the header {len(header)}")
-                for i, h in keep:
-                    cols[h].append(row[i])
-        except csv.Error as exc:
-            raise ConfigError(f"{path}: line {reader.line_num}: {_short(str(exc))}") from None
+def _read_csv(fh: TextIO, path: Path, wanted: set[str]) -> dict[str, list[str] | np.ndarray]:
+    reader = csv.reader(fh)
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise ConfigError(f"{path}: empty file") from None
+    except (csv.Error, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not a CSV table ({_short(str(exc))})") from None
+    keep = [(i, h) for i, h in enumerate(header) if h in wanted]
+    cols: dict[str, list[str]] = {h: [] for _, h in keep}
+    try:
+        for n, row in enumerate(reader, start=2):
+            if n > MAX_ROWS:
+                raise ConfigError(f"{path}: over {MAX_ROWS} rows")
+            if len(row) != len(header):
+                raise ConfigError(f"{path}: line {n} has {len(row)} fields, the header {len(header)}")
+            for i, h in keep:
+                cols[h].append(row[i])
+    except (csv.Error, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: line {reader.line_num}: {_short(str(exc))}") from None
     out: dict[str, list[str] | np.ndarray] = {}
     for h, values in cols.items():
         try:
@@ -112,13 +106,13 @@ def _read_csv(path: Path, wanted: set[str]) -> dict[str, list[str] | np.ndarray]
     return out
 
 
-def _read_parquet(path: Path, wanted: set[str]) -> dict[str, list[str] | np.ndarray]:
+def _read_parquet(fh: BinaryIO, path: Path, wanted: set[str]) -> dict[str, list[str] | np.ndarray]:
     try:
         import pyarrow.parquet as pq
     except ImportError:
         raise ConfigError("reading Parquet needs pyarrow: pip install 'cfknode[data]'") from None
     try:
-        pf = pq.ParquetFile(path)
+        pf = pq.ParquetFile(fh)
         if pf.metadata.num_rows > MAX_ROWS:
             raise ConfigError(f"{path}: {pf.metadata.num_rows} rows, over the {MAX_ROWS} row limit")
         present = [c for c in pf.schema_arrow.names if c in wanted]
