@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from cfknode.app.cli import UsageError
+from cfknode.kernel.outputs import output_problem
 from cfknode.app.commands.fly import add_config_arguments, config_from_args
 
 HELP = "train a KNODE model from flight logs (offline KNODE-MPC)"
@@ -24,8 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, flags={"epochs": "training.epochs"})
     out = Path(args.out)
-    if out.exists() and out.is_dir():
-        raise UsageError(f"--out {out} is a directory; give a file name")
+    problem = output_problem(out)  # before training: the model is written over regular files only
+    if problem is not None:
+        raise UsageError(f"--out {problem}")
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
