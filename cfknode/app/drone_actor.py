@@ -120,9 +120,10 @@ class DroneActor:
     def interrupt(self, signal_name: str = "SIGINT") -> None:
         self._inbox.append(("interrupt", (signal_name,)))
 
-    def hold(self, reason: str) -> None:
-        """Hover where the drone is now (its own latest estimate), until a landing is requested."""
-        self._inbox.append(("hold", (reason,)))
+    def hold(self, reason: str, to: list[float] | None = None, move_s: float = 0.0) -> None:
+        """Hover where the drone is now (its own latest estimate), gliding to ``to`` over ``move_s``
+        seconds when given (clear of the drones below), until a landing is requested."""
+        self._inbox.append(("hold", (reason, to, move_s)))
 
     def land_at(self, t: float, reason: str, cause: str) -> None:
         """Land when the drone's own flight time reaches ``t`` (at once if it has)."""
@@ -162,7 +163,7 @@ class DroneActor:
                 sup.interrupt(*args)
             elif kind == "hold":
                 if state in _HOLDABLE and info.est is not None and t < self._land_deadline:
-                    self._ref.hold(t, info.est.p)
+                    self._ref.hold(t, info.est.p, to=args[1], move_s=args[2])
                     sup.note("warning", f"fleet: hold ({args[0]})", "fleet")
             elif kind == "land_at":
                 t_land, reason, cause = args

@@ -21,10 +21,10 @@ import numpy as np
 
 from cfknode.app.backends.robots import Robot, load_robots
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet import FleetCoordinator, FleetResult, fly_drones, preflight
+from cfknode.app.fleet import (FleetCoordinator, FleetResult, fly_drones, placed_fence_events, preflight,
+                               separation_refusal)
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
-from cfknode.safety.separation import refusal
 
 _logger = logging.getLogger(__name__)
 
@@ -96,6 +96,7 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
     robots = select_robots(cfg, names)
     configs = [robot_config(cfg, r) for r in robots]
     refs = robot_references(cfg, [r.initial_position for r in robots])
+    placed_fence_events(cfg, names, refs)  # refused here; a forced fleet's events are logged once it connected
     radio_pps = preflight(cfg, names, configs, refs)
     return robots, configs, radio_pps
 
@@ -137,7 +138,8 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
         with fleet_trainers(configs) as trainers, RobotFleetBackend.open(cfg, robots, console) as backend:
             # Where the mocap sees them, within the pre-flight tolerance of their initial positions.
             refs = robot_references(cfg, [d.start_position for d in backend.drones])
-            line = refusal(list(names), [r.inner for r in refs], cfg.fleet.min_separation)
+            forced.extend(placed_fence_events(cfg, names, refs))
+            line = separation_refusal(cfg, names, refs)
             if line is not None:
                 raise ConfigError(line)
 
