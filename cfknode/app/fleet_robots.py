@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -25,6 +26,7 @@ from cfknode.app.fleet import (FleetCoordinator, FleetResult, fly_drones, placed
                                separation_refusal)
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
+from cfknode.safety.estop_mailbox import safe_name
 
 _logger = logging.getLogger(__name__)
 
@@ -46,7 +48,37 @@ def select_robots(cfg: Config, names: Sequence[str]) -> list[Robot]:
             f"{', '.join(disabled)} disabled (enabled: false)" if disabled else "") if part)
         raise ConfigError(f"--robots: {what} in {file.path}; known robots: {', '.join(enabled) or 'none'}"
                           + (f" (disabled: {', '.join(off)})" if off else ""))
-    return [file.robots[n] for n in names]
+    robots = [file.robots[n] for n in names]
+    clash = _first_clash(names, [safe_name(n) for n in names])
+    if clash is not None:
+        raise ConfigError(f"--robots: {clash[0]} and {clash[1]} share the file name {safe_name(clash[0])!r} (their "
+                          f"e-stop lock and mailbox entry); rename one in {file.path}")
+    clash = _first_clash(names, [link_identity(r.uri) for r in robots])
+    if clash is not None:
+        a, b = (file.robots[n] for n in clash)
+        raise ConfigError(f"--robots: {a.name} ({a.uri}) and {b.name} ({b.uri}) are the same link in {file.path}: "
+                          "one Crazyflie cannot fly as two robots")
+    return robots
+
+
+def link_identity(uri: str) -> tuple[str, ...]:
+    """What makes two URIs one vehicle: a radio's channel, data rate and address (the dongle index
+    aside: two dongles reach the same Crazyflie), anything else its whole URI."""
+    text = uri.strip()
+    m = re.fullmatch(r"radio://\d+/(\d+)/(\w+)(?:/([0-9A-Fa-f]+))?/?(\?.*)?", text)
+    if m is None:
+        return ("uri", text.lower())
+    return ("radio", str(int(m.group(1))), m.group(2).upper(), (m.group(3) or "E7E7E7E7E7").upper().rjust(10, "0"))
+
+
+def _first_clash(names: Sequence[str], keys: Sequence[Any]) -> tuple[str, str] | None:
+    """The first two names whose keys are equal, or None."""
+    seen: dict[Any, str] = {}
+    for name, key in zip(names, keys):
+        if key in seen:
+            return seen[key], name
+        seen[key] = name
+    return None
 
 
 def robot_references(cfg: Config, starts: Sequence[Sequence[float]]) -> list[HoldableReference]:
