@@ -39,6 +39,7 @@ from cfknode import __version__
 from cfknode.app.bench.executor import ExecutorSettings, connect_ray
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.drone_actor import DroneActor, DroneSpec
+from cfknode.app.bench.ray_probe import RayAddressError
 from cfknode.app.fleet import (DroneResult, FleetCoordinator, FleetResult, drone_configs, placed_fence_events,
                                preflight, true_min_separation)
 from cfknode.app.flight_checks import refuse_unflyable
@@ -173,6 +174,8 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
     # A Ray started here is this machine alone: it has every simulated radio.
     try:
         owned = connect_ray(settings.address, len(names), {r: 1.0 for r in resources})
+    except RayAddressError as exc:  # a bad or unreachable address: the user's to fix
+        raise ConfigError(f"take-off refused: {exc}") from None
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {settings.address}" if settings.address else "a local Ray"
         raise MissionError(f"take-off refused: cannot join {where}: {str(exc).splitlines()[0][:200]}") from None
