@@ -134,8 +134,14 @@ class FleetCoordinator:
         if p is not None:
             spot, move_s = self._landing_spot(k, p)
             self._spots[k] = spot
-            self._refs[k].hold(t, p, to=spot, move_s=move_s)
-            t_land = max(t_land, t + move_s)
+            if move_s > 0.0:
+                self._refs[k].hold(t, p, to=spot, move_s=move_s)
+                t_land = max(t_land, t + move_s)
+            elif t_land <= t:
+                self._sups[k].request_land(reason, cause)  # nothing below it: it lands where it is, now
+                return
+            else:
+                self._refs[k].hold(t, p)
         self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
 
     def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
