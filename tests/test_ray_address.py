@@ -106,7 +106,8 @@ def test_the_cli_refuses_an_unreachable_address_with_exit_status_2(tmp_path):
     out, err = proc.communicate(timeout=300)
     lines = err.strip().splitlines()
     assert proc.returncode == 2 and "Traceback" not in err
-    assert lines[-1].startswith("cfknode: error: take-off refused: --address 127.0.0.1:") and "no Ray cluster" in lines[-1]
+    assert lines[-1].startswith("cfknode: error: take-off refused: --address 127.0.0.1:")
+    assert "no Ray cluster" in lines[-1]
 
 
 def test_sigterm_stops_the_command_while_it_waits_on_the_address(tmp_path):

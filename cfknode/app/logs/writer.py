@@ -246,7 +246,8 @@ class FlightLog:
                 stream.close()
             path.unlink(missing_ok=True)  # no empty, unreadable file left behind
             if isinstance(exc, OSError):
-                raise LogError(f"take-off refused: cannot write the flight log ({path}: {exc.strerror or exc})") from None
+                reason = exc.strerror or exc
+                raise LogError(f"take-off refused: cannot write the flight log ({path}: {reason})") from None
             raise
         log = cls(path, counted, writer, topics, flush_interval)
         # /config is a flush channel: with it the file's first chunk (schemas, channels) is on disk now.
