@@ -5,7 +5,7 @@ Before take-off, every pair's references are sampled on a fine grid over the who
 closer than the minimum refuses the flight, naming the pair, the time and the distance.
 In flight, ``SeparationWatch`` compares the drones' latest positions (their state estimates,
 as on hardware) and reports each pair once when it comes too close; what to do about it
-(hold, then land) is the fleet's business (cfknode/app/fleet.py).
+(hold, then land) is the fleet's business (cfknode/app/fleet/coordinator.py).
 """
 
 from __future__ import annotations

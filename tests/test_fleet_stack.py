@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from cfknode.app.config import ConfigError, load_config
-from cfknode.app.fleet import drone_configs, placed_fence_events, preflight, run_fleet
-from cfknode.app.fleet_coordinator import LANDING_CLEARANCE, FleetCoordinator
+from cfknode.app.fleet.flight import drone_configs, placed_fence_events, preflight, run_fleet
+from cfknode.app.fleet.coordinator import LANDING_CLEARANCE, FleetCoordinator
 from cfknode.flight.controller import TickInfo
 from cfknode.flight.formation import HoldableReference
 from cfknode.flight.trajectory import make_trajectory

@@ -7,7 +7,7 @@ import pytest
 
 from cfknode.app.cli import main
 from cfknode.app.config import ConfigError
-from cfknode.app.fleet_robots import check_robot_fleet, link_identity
+from cfknode.app.fleet.robots import check_robot_fleet, link_identity
 from test_fleet_robots import cfg_for, ring_positions, write_robots
 
 

@@ -18,7 +18,7 @@ from typing import Any, Literal, Mapping
 
 import yaml
 
-from cfknode.app.fleet_settings import FleetConfig
+from cfknode.app.fleet.settings import FleetConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
 from cfknode.kernel.errors import ConfigError
 from cfknode.kernel.vehicle import Vec3, VehicleConfig

@@ -31,7 +31,7 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.backends.sim_fleet import fault_free
 from cfknode.app.config import Config
-from cfknode.app.fleet import drone_configs
+from cfknode.app.fleet.flight import drone_configs
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import FlightResult, run_flight
 from cfknode.app.ui.summary import compute_summary

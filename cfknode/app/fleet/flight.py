@@ -16,9 +16,9 @@ drone's supervisor lands or stops it. One MCAP log holds every drone's channels 
 --all`` reaches them all. Stop signals (SIGINT, SIGTERM, SIGHUP) go to every drone's supervisor
 through ``FleetCoordinator.interrupt``: the first lands them all, a second stops them all.
 With ``--online`` every drone learns as a single flight does, its rounds on one shared trainer
-process (cfknode/app/fleet_learning.py).
+process (cfknode/app/fleet/learning.py).
 
-A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet_robots.py) shares all of this:
+A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet/robots.py) shares all of this:
 ``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
 that are ``Backend``s, on a lockstep member clock or on one wall clock.
 """
@@ -38,8 +38,8 @@ from cfknode import __version__
 from cfknode.app.backends.base import Backend
 from cfknode.app.backends.sim_fleet import FleetSimBackend
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet_coordinator import FleetCoordinator
-from cfknode.app.fleet_learning import fleet_sessions, fleet_trainers
+from cfknode.app.fleet.coordinator import FleetCoordinator
+from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec

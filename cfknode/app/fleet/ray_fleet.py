@@ -38,9 +38,9 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.bench.executor import ExecutorSettings, connect_ray
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.drone_actor import DroneActor, DroneSpec
+from cfknode.app.fleet.drone_actor import DroneActor, DroneSpec
 from cfknode.app.bench.ray_probe import RayAddressError
-from cfknode.app.fleet import (DroneResult, FleetCoordinator, FleetResult, drone_configs, placed_fence_events,
+from cfknode.app.fleet.flight import (DroneResult, FleetCoordinator, FleetResult, drone_configs, placed_fence_events,
                                preflight, true_min_separation)
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.logs.writer import FlightLog

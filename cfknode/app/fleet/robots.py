@@ -1,6 +1,6 @@
 """A fleet of named robots from the robots file: ``cfknode fly --robots cf1,cf2,cf3`` (docs/fleet.md).
 
-The hardware counterpart of ``run_fleet`` (cfknode/app/fleet.py), sharing its coordinator,
+The hardware counterpart of ``run_fleet`` (cfknode/app/fleet/flight.py), sharing its coordinator,
 log channels, pre-flight checks, flight and summary: every robot flies its own estimator,
 ``Controller`` and ``Supervisor`` in one event loop, on one wall clock (real time, not
 lockstep), with its own link and one shared mocap connection (backends/robot_fleet.py).
@@ -22,7 +22,7 @@ import numpy as np
 
 from cfknode.app.backends.robots import Robot, load_robots
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet import (FleetCoordinator, FleetResult, fly_drones, placed_fence_events, preflight,
+from cfknode.app.fleet.flight import (FleetCoordinator, FleetResult, fly_drones, placed_fence_events, preflight,
                                separation_refusal)
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
@@ -141,7 +141,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
     for ``fly_drones``."""
     from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
     from cfknode.app.backends.robot_fleet import RobotFleetBackend
-    from cfknode.app.fleet_learning import fleet_trainers
+    from cfknode.app.fleet.learning import fleet_trainers
     from cfknode.app.flight_checks import refuse_unflyable
     from cfknode.app.learning import online_model_slot
     from cfknode.app.mission import MissionError, build_controller, build_model_slot
