@@ -161,3 +161,16 @@ def test_a_fault_below_never_lands_the_upper_drone_onto_the_lower(tmp_path):
     cf2 = result.drones[1].record
     end = cf2.p[cf2.ticks - 1]
     assert np.hypot(*(end[:2] - result.drones[0].record.p[result.drones[0].record.ticks - 1][:2])) >= 0.3
+
+
+def test_a_pair_that_parted_and_comes_close_again_is_reported_again():
+    from cfknode.safety.separation import REARM_M, SeparationWatch
+
+    watch = SeparationWatch(["a", "b"], 0.3)
+    both = [True, True]
+    watch.update(0, (0, 0, 1.0), both)
+    assert watch.update(1, (0, 0, 1.25), both) == [(0, 1, pytest.approx(0.25))]
+    assert watch.update(1, (0, 0, 1.32), both) == []  # jitter around the minimum: not parted
+    assert watch.update(1, (0, 0, 1.2), both) == []
+    watch.update(1, (0.3 + REARM_M + 0.01, 0, 1.0), both)  # parted (a glide clear)
+    assert watch.update(1, (0.1, 0, 1.0), both) == [(0, 1, pytest.approx(0.1))]  # e.g. while landing
