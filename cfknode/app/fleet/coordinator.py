@@ -54,6 +54,7 @@ class FleetCoordinator:
         self._soft = (fence.soft_lo, fence.soft_hi)
         self._centre = (float(cfg.trajectory.center[0]), float(cfg.trajectory.center[1]))
         self._spots: dict[int, np.ndarray] = {}  # where each drone glides before it lands (clear of those below)
+        self._glide_end: dict[int, float] = {}  # flight time each drone's glide there ends
         self._state = [""] * len(names)
         self._p: list[np.ndarray | None] = [None] * len(names)
         self._land_at: dict[int, tuple[float, str, str]] = {}
@@ -131,17 +132,17 @@ class FleetCoordinator:
                 self._sups[k].request_land(reason, cause)  # refuses a take-off not yet made
             return  # already landing, landed or stopped: nothing to hold
         p = self._p[k]
-        if p is not None:
+        if p is not None and k not in self._spots:  # held already: its first spot and glide stand
             spot, move_s = self._landing_spot(k, p)
-            self._spots[k] = spot
+            self._spots[k], self._glide_end[k] = spot, t + move_s
             if move_s > 0.0:
                 self._refs[k].hold(t, p, to=spot, move_s=move_s)
-                t_land = max(t_land, t + move_s)
-            elif t_land <= t:
-                self._sups[k].request_land(reason, cause)  # nothing below it: it lands where it is, now
-                return
-            else:
+            elif t_land > t:
                 self._refs[k].hold(t, p)
+        t_land = max(t_land, self._glide_end.get(k, t_land))  # not before it is clear of those below
+        if t_land <= t and not self._blocked(k):
+            self._sups[k].request_land(reason, cause)  # clear of those below: it lands where it is, now
+            return
         self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
 
     def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
