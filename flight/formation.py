@@ -9,7 +9,7 @@
   so no two land on the same spot.
 
 ``HoldableReference`` lets the fleet freeze one drone's reference where the drone is (hover
-in place), e.g. when two drones came too close.
+in place), e.g. when two drones came too close, or glide it clear of the drones below first.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ class HoldableReference(_Wrapped):
 
     def __init__(self, inner: Reference) -> None:
         self._inner = inner
-        self._hold: tuple[float, np.ndarray, float] | None = None
+        self._hold: tuple[float, np.ndarray, float, np.ndarray, float] | None = None
 
     @property
     def inner(self) -> Reference:
@@ -81,24 +81,47 @@ class HoldableReference(_Wrapped):
     def final_position(self) -> np.ndarray:
         return self._inner.final_position
 
-    def hold(self, t: float, p: Sequence[float]) -> None:
-        """Hover at ``p`` from time ``t`` (the first hold wins)."""
+    def hold(self, t: float, p: Sequence[float], to: Sequence[float] | None = None, move_s: float = 0.0) -> None:
+        """Hover at ``p`` from time ``t`` (the first hold wins); with ``to``, glide from ``p`` to ``to``
+        over ``move_s`` seconds (a smootherstep: it starts and ends at rest), then hover there."""
         if self._hold is None:
             yaw = float(self._inner.sample(np.array([t])).yaw[0])
-            self._hold = (float(t), np.array(p, dtype=float), yaw)
+            start = np.array(p, dtype=float)
+            end = start if to is None else np.array(to, dtype=float)
+            self._hold = (float(t), start, yaw, end, max(float(move_s), 1e-3))
+
+    @property
+    def hold_target(self) -> np.ndarray | None:
+        """Where the held drone hovers once its glide ends (None: not held)."""
+        return None if self._hold is None else self._hold[3].copy()
 
     def sample(self, t: np.ndarray) -> RefSamples:
         if self._hold is None:
             return self._inner.sample(t)
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        t0, p, yaw = self._hold
+        t0, p, yaw, end, move_s = self._hold
         ref = self._inner.sample(t)
         after = t >= t0
         if not after.any():
             return ref
         ref_p, ref_v, ref_a, ref_yaw = ref.p.copy(), ref.v.copy(), ref.a.copy(), ref.yaw.copy()
-        ref_p[after], ref_v[after], ref_a[after], ref_yaw[after] = p, 0.0, 0.0, yaw
+        s, ds, dds = _smootherstep((t[after] - t0) / move_s)
+        d = end - p
+        ref_p[after] = p + s[:, None] * d
+        ref_v[after] = (ds / move_s)[:, None] * d
+        ref_a[after] = (dds / move_s**2)[:, None] * d
+        ref_yaw[after] = yaw
         return RefSamples(t=t, p=ref_p, v=ref_v, a=ref_a, yaw=ref_yaw)
+
+
+def _smootherstep(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The quintic 0 -> 1 and its first two derivatives (zero at both ends), for tau clipped to [0, 1]."""
+    x = np.clip(tau, 0.0, 1.0)
+    inside = (tau > 0.0) & (tau < 1.0)
+    s = x**3 * (10.0 + x * (6.0 * x - 15.0))
+    ds = np.where(inside, 30.0 * x**2 * (1.0 - x) ** 2, 0.0)
+    dds = np.where(inside, 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x), 0.0)
+    return s, ds, dds
 
 
 def fleet_references(

@@ -33,6 +33,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from cfknode.kernel.bounded_input import describe_os_error, load_json, open_regular
+from cfknode.kernel.outputs import output_problem
 
 FORMAT_NAME = "cfknode.knode"
 FORMAT_VERSION = 1
@@ -132,6 +133,9 @@ def queue_weights(n: int) -> np.ndarray:
 def save_model(path: str | Path, model: ModelFile) -> Path:
     """Write ``model`` to ``path`` atomically: temp file in the same directory, fsync, ``os.replace``."""
     path = Path(path)
+    problem = output_problem(path)
+    if problem is not None:
+        raise ModelFileError(f"model file {problem}")
     _check_model(model, str(path))
     tensors: dict[str, np.ndarray] = {}
     for j, net in enumerate(model.networks):
@@ -166,6 +170,9 @@ def save_model(path: str | Path, model: ModelFile) -> Path:
             fh.write(blob)
             fh.flush()
             os.fsync(fh.fileno())
+        problem = output_problem(path)  # again: the target may have changed while the blob was written
+        if problem is not None:
+            raise ModelFileError(f"model file {problem}")
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -4,8 +4,9 @@ Before take-off, every pair's references are sampled on a fine grid over the who
 (ground start and landing spot included: they are places too); the first time a pair comes
 closer than the minimum refuses the flight, naming the pair, the time and the distance.
 In flight, ``SeparationWatch`` compares the drones' latest positions (their state estimates,
-as on hardware) and reports each pair once when it comes too close; what to do about it
-(hold, then land) is the fleet's business (cfknode/app/fleet.py).
+as on hardware) and reports a pair when it comes too close, and again only after it has
+parted (held and landing drones are watched too); what to do about it (hold, then land) is
+the fleet's business (cfknode/app/fleet/coordinator.py).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 from cfknode.kernel.reference import Reference
 
 GRID_S = 0.01  # s between checked reference samples (0.4 m/s moves 4 mm)
+REARM_M = 0.05  # m beyond the minimum a reported pair must part before a new approach is reported
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,8 @@ class SeparationWatch:
             if d < self.closest:
                 self.closest = d
             pair = (min(i, j), max(i, j))
+            if pair in self._reported and d > self.min_separation + REARM_M:
+                self._reported.discard(pair)  # apart again: a new approach (in a hold, a landing) is reported too
             if self.min_separation > 0 and d < self.min_separation and pair not in self._reported:
                 self._reported.add(pair)
                 out.append((pair[0], pair[1], d))

@@ -17,7 +17,7 @@ from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.battery import Battery
 from cfknode.sim_backend.firmware import Firmware
 from cfknode.sim_backend.plant import thrust_scale_at
-from cfknode.sim_backend.scenario import mass_at
+from cfknode.sim_backend.scenario import MassSchedule
 from cfknode.sim_backend.settings import SimConfig
 from cfknode.sim_backend.vehicle import Vehicle
 
@@ -44,8 +44,8 @@ class SimCrazyflie:
                                  yaw_gain=sim.yaw_gain)
         self.battery = Battery(sim.battery_voltage)
         self._nominal_mass = vehicle.mass
-        self._mass_changes = sim.mass_changes
-        self._mass = mass_at(0.0, self._nominal_mass, self._mass_changes)
+        self._mass_schedule = MassSchedule(self._nominal_mass, sim.mass_changes)
+        self._mass = self._mass_schedule.at(0.0)
         self._k = 0
         self._observers: list[StepObserver] = []
         self.failure: str | None = None  # why the plant stopped (it raised); time still advances
@@ -123,7 +123,7 @@ class SimCrazyflie:
             t = self._k * dt
             x = vehicle.state_list()
             motors = firmware.step(t, x)
-            self._mass = mass = mass_at(t, self._nominal_mass, self._mass_changes)
+            self._mass = mass = self._mass_schedule.at(t)
             if sag:
                 vehicle.set_thrust_scale(thrust_scale_at(t, self.sim_config))
             vehicle.step(motors, mass)

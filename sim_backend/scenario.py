@@ -5,6 +5,7 @@ Pure functions of the configuration and the time or velocity; the plant calls th
 
 from __future__ import annotations
 
+import bisect
 from typing import Sequence
 
 from cfknode.sim_backend.settings import MassChange
@@ -44,3 +45,26 @@ def drag_force(
         -drag[1] * (vy - wind[1]),
         -drag[2] * (vz - wind[2]),
     )
+
+
+class MassSchedule:
+    """``mass_at`` for a plant stepping forward in time: the changes sorted once, and a cursor, so
+    a step costs O(1) however long the list (a backward query falls back to a bisection)."""
+
+    def __init__(self, nominal_mass: float, changes: Sequence[MassChange]) -> None:
+        # A stable sort keeps the listed order among equal times: the one listed last wins, as in mass_at.
+        ordered = sorted(changes, key=lambda c: c.t)
+        self._from = [c.t - TIME_TOL for c in ordered]
+        self._factor = [c.factor for c in ordered]
+        self._nominal = nominal_mass
+        self._k = -1  # index of the change in force at the last query (-1: none yet)
+
+    def at(self, t: float) -> float:
+        """True mass [kg] for the plant step starting at ``t`` (equal to ``mass_at``)."""
+        k = self._k
+        if k >= 0 and self._from[k] > t:
+            k = bisect.bisect_right(self._from, t) - 1
+        while k + 1 < len(self._from) and self._from[k + 1] <= t:
+            k += 1
+        self._k = k
+        return (self._factor[k] if k >= 0 else 1.0) * self._nominal

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cfknode.app.config import ConfigError, load_config
-from cfknode.app.fleet import FleetCoordinator, drone_configs, preflight, run_fleet
+from cfknode.app.fleet.flight import FleetCoordinator, drone_configs, preflight, run_fleet
 from cfknode.app.logs.reader import read_log
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget, radio_of
 from cfknode.flight.controller import TickInfo

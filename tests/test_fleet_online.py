@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from cfknode.app.config import load_config
-from cfknode.app.fleet import FleetResult, run_fleet
+from cfknode.app.fleet.flight import FleetResult, run_fleet
 from cfknode.app.logs.reader import read_log
 
 # Two drones stacked 0.5 m apart with downwash, a short pattern, and a 30 % heavier vehicle from

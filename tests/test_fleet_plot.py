@@ -10,7 +10,7 @@ import pytest
 from cfknode.app.cli import UsageError
 from cfknode.app.commands import plot as plot_command
 from cfknode.app.commands import replay as replay_command
-from cfknode.app.fleet import fleet_channels
+from cfknode.app.fleet.flight import fleet_channels
 from cfknode.app.logs.fleet_log import drone_log, fleet_drones
 from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.app.ui.plotting import PLOTS, plot_logs, read_for_plot, traces_from_log

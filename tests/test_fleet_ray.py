@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from cfknode.app.config import ConfigError, load_config
-from cfknode.app.fleet_ray import check_resources, radio_resource
+from cfknode.app.fleet.ray_fleet import check_resources, radio_resource
 
 SHORT = {"trajectory.duration": 1.0, "trajectory.takeoff_duration": 1.5, "trajectory.settle_duration": 0.5,
          "trajectory.land_duration": 1.5, "trajectory.ramp_duration": 0.5, "dashboard.enabled": False,
@@ -79,8 +79,8 @@ def _tick(t, state, p=None):
 
 
 def test_the_driver_coordinator_sends_holds_and_timed_landings_to_the_actors(tmp_path):
-    from cfknode.app.fleet import drone_configs
-    from cfknode.app.fleet_ray import RemoteCoordinator
+    from cfknode.app.fleet.flight import drone_configs
+    from cfknode.app.fleet.ray_fleet import RemoteCoordinator
 
     cfg = fleet_cfg(tmp_path, **{"fleet.on_fault": "land_all", "fleet.hold_s": 0.5, "trajectory.duration": 10.0})
     names, _, refs = drone_configs(cfg)
@@ -100,8 +100,8 @@ def test_the_driver_coordinator_sends_holds_and_timed_landings_to_the_actors(tmp
 
 
 def test_the_timeline_compares_drones_at_the_same_flight_time_however_far_apart_their_actors_run(tmp_path):
-    from cfknode.app.fleet import drone_configs
-    from cfknode.app.fleet_ray import RemoteCoordinator, Timeline
+    from cfknode.app.fleet.flight import drone_configs
+    from cfknode.app.fleet.ray_fleet import RemoteCoordinator, Timeline
 
     cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 10.0})
     names, _, refs = drone_configs(cfg)
@@ -178,7 +178,7 @@ def _tracking_actor(drone: str):
 
 
 def test_two_drones_fly_one_per_radio_node_land_and_log_on_their_node(cluster, tmp_path):
-    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
     from cfknode.app.logs.reader import read_log
 
     result = run_fleet_ray(fleet_cfg(tmp_path), _settings(cluster))
@@ -196,7 +196,7 @@ def test_two_drones_fly_one_per_radio_node_land_and_log_on_their_node(cluster, t
 
 
 def test_a_drone_whose_radio_no_node_has_is_refused_before_any_actor_starts(cluster, tmp_path):
-    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
 
     with pytest.raises(ConfigError, match=r"take-off refused: cf3 needs the Ray resource 'crazyradio_2'"):
         run_fleet_ray(fleet_cfg(tmp_path, **{"fleet.size": 3}), _settings(cluster))
@@ -204,8 +204,8 @@ def test_a_drone_whose_radio_no_node_has_is_refused_before_any_actor_starts(clus
 
 
 def test_a_restarted_actor_keeps_the_old_log_and_ends_its_drone_as_a_fault(cluster, tmp_path):
-    from cfknode.app.drone_actor import RESTART_CAUSE
-    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.fleet.drone_actor import RESTART_CAUSE
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
     from cfknode.app.logs.reader import read_log
 
     cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 8.0})
@@ -231,7 +231,7 @@ def test_a_restarted_actor_keeps_the_old_log_and_ends_its_drone_as_a_fault(clust
 
 def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
     from cfknode.app.commands.estop_all import estop_all
-    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
 
     cfg = fleet_cfg(tmp_path, **{"trajectory.duration": 8.0})
     out: dict = {}
@@ -250,7 +250,7 @@ def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
 def test_online_learning_is_refused_for_a_ray_fleet_before_ray_starts(tmp_path):
     from cfknode.app.bench.executor import ExecutorSettings
     from cfknode.app.config import ConfigError, load_config
-    from cfknode.app.fleet_ray import run_fleet_ray
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
 
     cfg = load_config(overrides={"fleet.size": 2, "online.enabled": True, "log.dir": str(tmp_path)})
     with pytest.raises(ConfigError, match="executor local"):

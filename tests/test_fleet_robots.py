@@ -18,7 +18,7 @@ import pytest
 from cfknode.app.cli import UsageError, main
 from cfknode.app.commands import fly
 from cfknode.app.config import ConfigError, load_config
-from cfknode.app.fleet_robots import check_robot_fleet, robot_references, run_robot_fleet
+from cfknode.app.fleet.robots import check_robot_fleet, robot_references, run_robot_fleet
 from cfknode.app.logs.reader import read_log
 from cfknode.mocap.motioncapture_source import SdkQuaternion, SdkRigidBody
 from cfknode.mocap.shared_source import MocapHub

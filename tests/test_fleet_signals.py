@@ -22,7 +22,7 @@ from fakes import finish_json, wait_for_log_events
 
 from cfknode.app import fleet
 from cfknode.app.config import load_config
-from cfknode.app.fleet import FleetCoordinator, drone_configs
+from cfknode.app.fleet.flight import FleetCoordinator, drone_configs
 from cfknode.app.logs.writer import read_log
 from cfknode.kernel.setpoint import AttitudeSetpoint
 

@@ -220,12 +220,21 @@ def records(raw: bytes) -> list[tuple[int, int, int]]:
     return out
 
 
+def _chunk_span(raw: bytes | bytearray, pos: int) -> float:
+    """Flight time (s) from a chunk's first message to its last, from the chunk record's header."""
+    start, end = struct.unpack_from("<QQ", raw, pos + 9)
+    return (end - start) * 1e-9
+
+
 def test_a_corrupt_chunk_is_skipped_and_the_rest_of_the_flight_still_read(flight, tmp_path, capsys):
     raw = bytearray(flight.path.read_bytes())
     chunks = [(pos, n) for op, pos, n in records(bytes(raw)) if op == 0x06]
     assert len(chunks) > 4
-    pos, n = chunks[len(chunks) // 2]
+    # Chosen by content: of the chunks after the first, the one spanning the most flight time
+    # (its header says so), so it holds many states however the machine's load cut the chunks.
+    pos, n = max(chunks[1:], key=lambda c: _chunk_span(raw, c[0]))
     start, end = (x * 1e-9 for x in struct.unpack_from("<QQ", raw, pos + 9))
+    assert end - start > 0.1
     for k in range(pos + n - 400, pos + n - 300):  # inside the compressed data
         raw[k] ^= 0x5A
     bad = tmp_path / "corrupt.mcap"

@@ -21,6 +21,7 @@ from typing import Sequence  # noqa: E402
 from cfknode import __version__  # noqa: E402
 from cfknode.app.cli_logging import command_logging  # noqa: E402
 from cfknode.app.config import ConfigError  # noqa: E402
+from cfknode.app.logs.format import LogError  # noqa: E402
 
 COMMANDS: tuple[str, ...] = ("fly", "train", "model", "plot", "replay", "calibrate", "estop", "bench")
 
@@ -48,7 +49,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with command_logging(args.verbose):
         try:
             return module.run(args)
-        except (ConfigError, UsageError) as exc:
+        except (ConfigError, UsageError, LogError) as exc:
             print(f"cfknode: error: {exc}", file=sys.stderr)
             return 2
         except KeyboardInterrupt as exc:

@@ -18,7 +18,7 @@ from typing import Any, Literal, Mapping
 
 import yaml
 
-from cfknode.app.fleet_settings import FleetConfig
+from cfknode.app.fleet.settings import FleetConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
 from cfknode.kernel.bounded_input import QUOTE_CHARS, load_yaml, quote, read_regular
 from cfknode.kernel.errors import ConfigError

@@ -6,7 +6,8 @@
 - the trajectory leaves the geofence's soft box, or needs more tilt or thrust than the limits
   allow (``cfknode/app/trajectory_fit.py``); with ``hardware.force`` it flies anyway, and the reason
   is returned as a log event instead;
-- the log directory or the e-stop mailbox directory cannot be created or written.
+- the log directory or the e-stop mailbox directory cannot be created or written, or the log
+  directory has less free space than the flight's log is expected to need.
 
 Cheap by design: it runs before the MPC is built and before any radio is opened.
 """
@@ -14,6 +15,7 @@ Cheap by design: it runs before the MPC is built and before any radio is opened.
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +23,12 @@ from cfknode.app.config import Config, ConfigError
 from cfknode.app.config_bounds import check_bounds
 from cfknode.safety.operator import mailbox_dir
 from cfknode.app.trajectory_fit import trajectory_problem
+from cfknode.flight.trajectory import make_trajectory
+
+# A simulated flight's log took about 650 bytes per drone and control tick (lz4); rounded up
+# for events, online-learning records and the index, plus a fixed part.
+LOG_BYTES_PER_TICK = 1024
+LOG_FIXED_BYTES = 1 << 20
 
 
 def writable_dir_problem(path: Path, key: str) -> str | None:
@@ -48,6 +56,9 @@ def refuse_unflyable(cfg: Config, where: str = "") -> list[dict[str, Any]]:
         problem = writable_dir_problem(path, key)
         if problem is not None:
             raise ConfigError(problem)
+    problem = log_space_problem(cfg)
+    if problem is not None:
+        raise ConfigError(problem)
     events = thrust_margin_warnings(cfg)
     problem = trajectory_problem(cfg)
     if problem is None:
@@ -55,6 +66,28 @@ def refuse_unflyable(cfg: Config, where: str = "") -> list[dict[str, Any]]:
     if not cfg.hardware.force:
         raise ConfigError(f"refusing to take off: {problem} (hardware.force / --force flies it clamped)")
     return [*events, {"level": "warning", "text": f"take-off FORCED despite: {problem}", "source": "preflight"}]
+
+
+def expected_log_bytes(cfg: Config) -> int:
+    """About how many bytes this flight's log takes: every drone (a fleet's too), every tick of the
+    whole reference (take-off to touch-down)."""
+    drones = max(1, cfg.fleet.size)
+    duration = make_trajectory(cfg.trajectory, cfg.sim.initial_position).duration
+    return int(LOG_FIXED_BYTES + drones * duration * cfg.controller.rate_hz * LOG_BYTES_PER_TICK)
+
+
+def log_space_problem(cfg: Config) -> str | None:
+    """Why the log directory cannot hold this flight's log (one line), or None."""
+    path = Path(cfg.log.dir).expanduser()
+    try:
+        free = shutil.disk_usage(path).free
+    except OSError as exc:
+        return f"log.dir {path}: cannot check its free space ({exc.strerror or exc})"
+    need = expected_log_bytes(cfg)
+    if free >= need:
+        return None
+    return (f"take-off refused: log.dir {path} has {free / 1e6:.1f} MB free, and this flight's log needs about "
+            f"{need / 1e6:.1f} MB; free some space or point log.dir elsewhere")
 
 
 LOW_THRUST_TO_WEIGHT = 1.3  # below this at the clamp, a payload or a sagging battery leaves no margin to climb

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -55,8 +56,9 @@ def _sample(traj: Trajectory, t0: float, t1: float) -> np.ndarray:
     return np.linspace(t0, t1, n)
 
 
-def fence_problem(cfg: Config, traj: Trajectory) -> str | None:
-    """The first axis on which the flown part of the reference leaves the soft box, as one line."""
+def fence_problem(cfg: Config, traj: Any, what: str = "the trajectory") -> str | None:
+    """The first axis on which the flown part of the reference leaves the soft box, as one line;
+    ``what`` names it (a fleet drone's placed trajectory)."""
     fence = Geofence.from_config(cfg.safety)
     t0 = traj.segments["settle_start"][0]
     t1 = traj.segments["land"][0]
@@ -64,12 +66,12 @@ def fence_problem(cfg: Config, traj: Trajectory) -> str | None:
     lo, hi = fence.soft_lo, fence.soft_hi
     for i, axis in enumerate("xyz"):
         if p[:, i].max() > hi[i] + 1e-9:
-            return (f"the trajectory ({_describe(cfg)}) reaches {axis} = {p[:, i].max():.2f} m, beyond the fence's "
+            return (f"{what} ({_describe(cfg)}) reaches {axis} = {p[:, i].max():.2f} m, beyond the fence's "
                     f"{hi[i]:.2f} m (safety.fence_max {axis} {fence.hi[i]:g} m - safety.fence_margin "
                     f"{fence.margin:g} m)")
         if p[:, i].min() < lo[i] - 1e-9:
             inset = f" + safety.fence_margin {fence.margin:g} m" if i < 2 else ""
-            return (f"the trajectory ({_describe(cfg)}) reaches {axis} = {p[:, i].min():.2f} m, beyond the fence's "
+            return (f"{what} ({_describe(cfg)}) reaches {axis} = {p[:, i].min():.2f} m, beyond the fence's "
                     f"{lo[i]:.2f} m (safety.fence_min {axis} {fence.lo[i]:g} m{inset})")
     return None
 

@@ -37,7 +37,7 @@ class _QueueClient(TrainerClient):
         if self.state == "idle":
             super().submit(request)  # the head of the queue: its hang deadline counts from now
         elif self.state == "busy":
-            self._conn.send(request)
+            self._send(request)
         else:
             raise RuntimeError(f"trainer is {self.state}, not idle")
 

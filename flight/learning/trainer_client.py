@@ -109,8 +109,16 @@ class TrainerClient:
             raise RuntimeError(f"trainer is {self.state}, not idle")
         # Clock first: the child may start training before send() returns on a busy machine.
         self.sent_wall = self._wall()
-        self._conn.send(request)
+        self._send(request)
         self.state = "busy"
+
+    def _send(self, message: Any) -> None:
+        """Send to the child. A child killed while idle breaks the pipe: the request is lost, and
+        the next ``poll`` reads the EOF and reports the crash, as for a child killed mid-round."""
+        try:
+            self._conn.send(message)
+        except OSError:
+            pass
 
     def poll(self, timeout: float = 0.0) -> TrainOutcome | TrainerReady | TrainerFault | None:
         """The trainer's next message, or a fault; waits up to ``timeout`` s (0: never blocks)."""

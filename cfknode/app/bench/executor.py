@@ -192,6 +192,9 @@ def connect_ray(address: str | None, num_cpus: int, resources: dict[str, float] 
     if ray.is_initialized():
         return False
     if address:
+        from cfknode.app.bench.ray_probe import probe_ray
+
+        probe_ray(address)  # bounded: Ray itself retries an address where nothing answers for minutes
         ray.init(address=address, logging_level="warning", log_to_driver=True)
     else:
         # ExecutorSettings.from_args already folded RAY_ADDRESS into the address.
@@ -229,7 +232,12 @@ def _backend(settings: ExecutorSettings) -> _Backend:
     if settings.kind == "ray":
         if importlib.util.find_spec("ray") is None:
             raise _usage_error(RAY_MISSING)
-        return _Ray(settings)
+        from cfknode.app.bench.ray_probe import RayAddressError
+
+        try:
+            return _Ray(settings)
+        except RayAddressError as exc:  # a bad or unreachable --address: one line, exit status 2
+            raise _usage_error(str(exc)) from None
     if settings.jobs == 1:
         return _Inline()
     return _LocalPool(settings.jobs, settings.max_retries)

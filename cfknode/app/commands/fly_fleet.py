@@ -13,7 +13,7 @@ from cfknode.app.config import Config
 
 def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     """Exit status 0 when every drone flew its mission to the end and the log is complete, else 1."""
-    from cfknode.app.fleet import run_fleet
+    from cfknode.app.fleet.flight import run_fleet
     from cfknode.safety.process_signals import ProcessSignals
 
     out = sys.stderr if args.json else sys.stdout
@@ -24,11 +24,11 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
           "lockstep simulation" + (" (a Ray actor per drone)" if ray else ""), file=out)
     if ray:
         from cfknode.app.bench.executor import ExecutorSettings
-        from cfknode.app.fleet_ray import run_fleet_ray
+        from cfknode.app.fleet.ray_fleet import run_fleet_ray
         from cfknode.app.mission import MissionError
 
         settings = ExecutorSettings.from_args(args, default_jobs=cfg.fleet.size)
-        try:  # the driver routes Ctrl-C, SIGTERM and SIGHUP to every actor (cfknode/app/fleet_ray.py)
+        try:  # the driver routes Ctrl-C, SIGTERM and SIGHUP to every actor (cfknode/app/fleet/ray_fleet.py)
             result = run_fleet_ray(cfg, settings, name_hint=args.name or f"fleet{cfg.fleet.size}")
         except MissionError as exc:  # the cluster could not be joined or could not place the drones
             print(f"cfknode: error: {exc}", file=sys.stderr)
@@ -48,7 +48,7 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
     robot could not be connected or failed its pre-flight checks."""
     from rich.console import Console
 
-    from cfknode.app.fleet_robots import run_robot_fleet
+    from cfknode.app.fleet.robots import run_robot_fleet
     from cfknode.app.mission import MissionError
     from cfknode.safety.process_signals import ProcessSignals
 
@@ -58,7 +58,7 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
           f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
           "real time", file=out)
     dashboard = fleet_dashboard(cfg, args, len(names))
-    try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet.py)
+    try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet/flight.py)
         with ProcessSignals() as signals:
             result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
                                      on_coordinator=signals.route, dashboard=dashboard)

@@ -111,7 +111,7 @@ def _chosen_drone(args: argparse.Namespace, names: list[str]) -> str:
 def _fleet_drone(cfg: Any, index: int) -> tuple[Any, Any]:
     """Drone ``index``'s own config (start, seed) and reference, rebuilt from the fleet's config as it flew."""
     from cfknode.app.config import ConfigError
-    from cfknode.app.fleet import drone_configs
+    from cfknode.app.fleet.flight import drone_configs
     from cfknode.app.replay import ReplayError
 
     try:

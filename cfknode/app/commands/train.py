@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 from cfknode.app.cli import UsageError
 from cfknode.app.commands.data_args import add_data_arguments, dataset_for, read_segments
+from cfknode.kernel.outputs import output_problem
 from cfknode.app.commands.fly import add_config_arguments, config_from_args
 
 HELP = "train a KNODE model from flight logs or CSV/Parquet flight tables (offline KNODE-MPC)"
@@ -28,8 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, flags={"epochs": "training.epochs"})
     out = Path(args.out)
-    if out.exists() and out.is_dir():
-        raise UsageError(f"--out {out} is a directory; give a file name")
+    problem = output_problem(out)  # before training: the model is written over regular files only
+    if problem is not None:
+        raise UsageError(f"--out {problem}")
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 

@@ -4,9 +4,11 @@ Messages are JSON, on channels that carry a JSON Schema, so Foxglove opens a log
 Every message's MCAP log time is the flight time in nanoseconds, and its payload repeats it as
 ``t`` in seconds. The channels are the registry ``logformat.CHANNELS`` (see docs/logs.md).
 
-Crash safety: the file is flushed to the operating system whenever ``flush_interval`` seconds
-of wall time have passed since the last flush. A background thread does the same while no
-messages arrive, so a process that dies (or hangs, then dies) loses at most about one interval.
+Crash safety: the file is flushed to the operating system (its chunk ends) whenever a message
+comes ``flush_interval`` seconds of flight time after the last flush, so the chunks of a flight
+are the same however loaded the machine. A background thread flushes a writer that has had no
+message for that long in wall time, so a process that hangs, then dies, loses at most about one
+interval.
 The config and software version sit at the start of the file (MCAP metadata and the ``/config``
 channel), flushed at once, so even a file cut short right after take-off still names its setup.
 ``read_log`` reads such a truncated file up to its last complete record.
@@ -14,6 +16,7 @@ channel), flushed at once, so even a file cut short right after take-off still n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import json.encoder
 import logging
@@ -168,7 +171,11 @@ class FlightLog:
         self._flush_interval = flush_interval
         self._encode = _make_encode()
         self._lock = threading.Lock()
-        self._last_flush = time.monotonic()
+        self._last_flush = self._last_write = time.monotonic()  # wall times: only the backstop reads them
+        # Chunks end by flight time (and size, and flush channels), so a log's chunks are the same
+        # on a quiet machine and a loaded one.
+        self._flush_t = 0.0  # latest flight time written when a chunk last ended
+        self._t_max = 0.0
         self._dirty = False
         self._closed = False
         self._count = 0
@@ -197,7 +204,8 @@ class FlightLog:
         """Open a new log ``<directory>/YYYYmmdd-HHMMSS-<hint>.mcap`` (a ``-k`` suffix if taken).
 
         ``started`` (default: now, local time) names the file and is stored in the metadata.
-        ``flush_interval`` is the most wall time that written data waits before reaching the OS.
+        ``flush_interval`` is the most flight time that written data waits before reaching the OS
+        (a chunk ends then); a writer that stops writing for that long in wall time is flushed too.
         ``compression``: "lz4", "zstd" or "none", per chunk. lz4 and 128 KiB chunks keep the
         occasional chunk-closing write (done inline by ``write``) near 0.5 ms; zstd files are
         about 30% smaller but close chunks 2x slower.
@@ -233,13 +241,21 @@ class FlightLog:
                 )
                 channel_id = writer.register_channel(spec.topic, "json", schema_id, {"description": spec.description})
                 topics[spec.topic] = (channel_id, spec.flush)
-        except BaseException:
-            stream.close()
+        except BaseException as exc:
+            with contextlib.suppress(OSError):  # a full disk refuses the buffered bytes again
+                stream.close()
             path.unlink(missing_ok=True)  # no empty, unreadable file left behind
+            if isinstance(exc, OSError):
+                reason = exc.strerror or exc
+                raise LogError(f"take-off refused: cannot write the flight log ({path}: {reason})") from None
             raise
         log = cls(path, counted, writer, topics, flush_interval)
         # /config is a flush channel: with it the file's first chunk (schemas, channels) is on disk now.
         log.write("/config", 0.0, {"software_version": software_version, "config": json.loads(config_json)})
+        if log.failure is not None:  # not even its start reached the disk (full): no flight without a log
+            log.close()
+            path.unlink(missing_ok=True)
+            raise LogError(f"take-off refused: cannot write the flight log ({log.failure})")
         log._flusher.start()
         return log
 
@@ -353,7 +369,9 @@ class FlightLog:
                 self._unflushed_from = None
             self._count += 1
             self._dirty = True
-            if flush_now or time.monotonic() - self._last_flush >= self._flush_interval:
+            self._t_max = max(self._t_max, t)
+            self._last_write = time.monotonic()
+            if flush_now or t - self._flush_t >= self._flush_interval:
                 try:
                     self._flush_locked()
                 except OSError as exc:
@@ -402,6 +420,7 @@ class FlightLog:
 
     def _flush_locked(self) -> None:
         self._writer.flush()
+        self._flush_t = self._t_max
         self._unflushed_from = None
         self._dirty = False
         self._last_flush = time.monotonic()
@@ -413,7 +432,9 @@ class FlightLog:
             with self._lock:
                 if self._closed:
                     return
-                stale = time.monotonic() - self._last_flush >= self._flush_interval
+                now = time.monotonic()
+                # Only a writer that has stopped writing: a flowing one ends its chunks by flight time.
+                stale = min(now - self._last_flush, now - self._last_write) >= self._flush_interval
                 if self._failure is None and self._dirty and stale:
                     try:
                         self._flush_locked()

@@ -31,7 +31,7 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.backends.sim_fleet import fault_free
 from cfknode.app.config import Config
-from cfknode.app.fleet import drone_configs
+from cfknode.app.fleet.flight import drone_configs
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import FlightResult, run_flight
 from cfknode.app.ui.summary import compute_summary
@@ -120,9 +120,10 @@ class DroneActor:
     def interrupt(self, signal_name: str = "SIGINT") -> None:
         self._inbox.append(("interrupt", (signal_name,)))
 
-    def hold(self, reason: str) -> None:
-        """Hover where the drone is now (its own latest estimate), until a landing is requested."""
-        self._inbox.append(("hold", (reason,)))
+    def hold(self, reason: str, to: list[float] | None = None, move_s: float = 0.0) -> None:
+        """Hover where the drone is now (its own latest estimate), gliding to ``to`` over ``move_s``
+        seconds when given (clear of the drones below), until a landing is requested."""
+        self._inbox.append(("hold", (reason, to, move_s)))
 
     def land_at(self, t: float, reason: str, cause: str) -> None:
         """Land when the drone's own flight time reaches ``t`` (at once if it has)."""
@@ -162,7 +163,7 @@ class DroneActor:
                 sup.interrupt(*args)
             elif kind == "hold":
                 if state in _HOLDABLE and info.est is not None and t < self._land_deadline:
-                    self._ref.hold(t, info.est.p)
+                    self._ref.hold(t, info.est.p, to=args[1], move_s=args[2])
                     sup.note("warning", f"fleet: hold ({args[0]})", "fleet")
             elif kind == "land_at":
                 t_land, reason, cause = args

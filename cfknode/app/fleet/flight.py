@@ -16,9 +16,9 @@ drone's supervisor lands or stops it. One MCAP log holds every drone's channels 
 --all`` reaches them all. Stop signals (SIGINT, SIGTERM, SIGHUP) go to every drone's supervisor
 through ``FleetCoordinator.interrupt``: the first lands them all, a second stops them all.
 With ``--online`` every drone learns as a single flight does, its rounds on one shared trainer
-process (cfknode/app/fleet_learning.py).
+process (cfknode/app/fleet/learning.py).
 
-A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet_robots.py) shares all of this:
+A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet/robots.py) shares all of this:
 ``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
 that are ``Backend``s, on a lockstep member clock or on one wall clock.
 """
@@ -29,7 +29,6 @@ import asyncio
 import dataclasses
 import re
 import signal
-from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -39,29 +38,25 @@ from cfknode import __version__
 from cfknode.app.backends.base import Backend
 from cfknode.app.backends.sim_fleet import FleetSimBackend
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet_learning import fleet_sessions, fleet_trainers
+from cfknode.app.fleet.coordinator import FleetCoordinator
+from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import _controller_label, build_controller, build_model_slot, build_supervisor
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
+from cfknode.app.trajectory_fit import fence_problem
 from cfknode.app.ui.summary import FlightSummary, compute_summary
-from cfknode.flight.controller import Controller, TickInfo
+from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
 from cfknode.safety.operator import STOP_SIGNALS
-from cfknode.safety.part_errors import signal_stop_text
-from cfknode.safety.separation import SeparationWatch, refusal
+from cfknode.safety.geofence import Geofence, clamp_reference
+from cfknode.safety.separation import refusal
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
-
-_FLYING = ("TAKEOFF", "TRACK", "LAND")
-_FAILED = ("LAND", "EMERGENCY", "IDLE", "LANDED")
-# The fleet's own landings never trigger the fault policy; nor do stop signals, which every drone got.
-_OWN_CAUSES = ("separation", "fleet_fault", "sigint", "sigterm", "sighup")
-
 
 @dataclass(frozen=True)
 class DroneResult:
@@ -137,7 +132,7 @@ def drone_configs(cfg: Config) -> tuple[list[str], list[Config], list[HoldableRe
 
 def preflight(cfg: Config, names: Sequence[str], configs: Sequence[Config], refs: Sequence[Any]) -> dict[str, float]:
     """Refuse a fleet whose references come too close or whose radios are over budget (one line each)."""
-    line = refusal(names, [r.inner for r in refs], cfg.fleet.min_separation)
+    line = separation_refusal(cfg, names, refs)
     if line is not None:
         raise ConfigError(line)
     loads = [LinkLoad(n, c.radio.uri, c.radio.tx_rate_hz, _pose_rate_hz(c), cfg.fleet.ping_hz)
@@ -145,120 +140,51 @@ def preflight(cfg: Config, names: Sequence[str], configs: Sequence[Config], refs
     return check_radio_budget(loads, cfg.fleet.radio_budget_pps, cfg.fleet.drones_per_sim_radio)
 
 
+def placed_fence_events(cfg: Config, names: Sequence[str], refs: Sequence[HoldableReference]) -> list[dict[str, Any]]:
+    """Every drone's placed trajectory against the fence's soft box, as for a single drone: a
+    one-line ``ConfigError``, or with ``hardware.force`` (``--force``) the log events of flying clamped."""
+    if not cfg.safety.enabled:
+        return []
+    events = []
+    for name, ref in zip(names, refs):
+        problem = fence_problem(cfg, ref.inner, what=f"{name}'s placed trajectory")
+        if problem is None:
+            continue
+        if not cfg.hardware.force:
+            raise ConfigError(f"refusing to take off: {problem} (hardware.force / --force flies it clamped)")
+        events.append({"level": "warning", "text": f"take-off FORCED despite: {problem}", "source": "preflight"})
+    return events
+
+
+def separation_refusal(cfg: Config, names: Sequence[str], refs: Sequence[HoldableReference]) -> str | None:
+    """The separation refusal over the references as flown: clamped into the fence's soft box, as
+    the supervisors clamp them (a forced drone clamped down onto the one below comes too close)."""
+    flown: list[Any] = [r.inner for r in refs]
+    if cfg.safety.enabled:
+        fence = Geofence.from_config(cfg.safety)
+        flown = [_Clamped(r, fence.soft_lo, fence.soft_hi) for r in flown]
+    return refusal(names, flown, cfg.fleet.min_separation)
+
+
+@dataclass(frozen=True)
+class _Clamped:
+    """A reference clamped into the soft box (``geofence.clamp_reference``), for the separation check."""
+
+    inner: Any
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def duration(self) -> float:
+        return float(self.inner.duration)
+
+    def sample(self, t: np.ndarray) -> Any:
+        return clamp_reference(self.inner.sample(t), self.lo, self.hi)
+
+
 def _pose_rate_hz(cfg: Config) -> float:
     """Extposes per second on a drone's link: one per frame of the mocap it flies with."""
     return cfg.hardware.mocap_rate_hz if cfg.backend == "cf" else cfg.sim.mocap_rate_hz
-
-
-class FleetCoordinator:
-    """Separation watch and fault policy across the fleet; a tick observer of every drone (``tap(i)``)."""
-
-    def __init__(self, cfg: Config, names: Sequence[str], supervisors: Sequence[Supervisor],
-                 refs: Sequence[HoldableReference], log: Any) -> None:
-        self.names = list(names)
-        self._sups = list(supervisors)
-        self._refs = list(refs)
-        self._log = log
-        self._policy = cfg.fleet.on_fault
-        self._hold_s = cfg.fleet.hold_s
-        self._period = 1.0 / cfg.controller.rate_hz
-        # The nominal landing starts here; a held drone must be landing before it (the
-        # supervisor's nominal landing would otherwise follow the held reference and cut in the air).
-        self._land_deadline = [r.segments["land"][0] - 2.0 * self._period for r in refs]
-        self.watch = SeparationWatch(names, cfg.fleet.min_separation)
-        self._state = [""] * len(names)
-        self._p: list[np.ndarray | None] = [None] * len(names)
-        self._land_at: dict[int, tuple[float, str, str]] = {}
-        self._faulted: set[int] = set()
-        self._signals: deque[str] = deque()  # stop signals not yet on /events (a handler must not write the log)
-        self._signals_logged = 0
-        self.events: list[str] = []
-
-    def tap(self, i: int) -> "_Tap":
-        return _Tap(self, i)
-
-    def interrupt(self, signal_name: str = "SIGINT") -> None:
-        """A stop signal for the whole fleet: every drone's supervisor gets it (the first lands,
-        a second stops the motors). Safe in a signal handler: it only appends to queues."""
-        self._signals.append(signal_name)
-        for sup in self._sups:
-            sup.interrupt(signal_name)
-
-    def log_signals(self, t: float) -> None:
-        """Put the stop signals received since the last call on ``/events`` at time ``t``."""
-        while self._signals:
-            name = self._signals.popleft()
-            self._signals_logged += 1
-            text = signal_stop_text(name)
-            if self._signals_logged == 1:
-                again = "Ctrl-C again" if name == "SIGINT" else f"another {name} (or Ctrl-C)"
-                self._event(t, "warning", f"{text}: every drone lands; {again} stops them all")
-            else:
-                self._event(t, "error", f"{text} again: every drone stops its motors")
-
-    def on_tick(self, i: int, info: TickInfo) -> None:
-        t = info.t
-        if self._signals:
-            self.log_signals(t)
-        pending = self._land_at.get(i)
-        if pending is not None and t >= pending[0] - 1e-9:
-            del self._land_at[i]
-            self._sups[i].request_land(pending[1], pending[2])
-        state = info.supervisor_state
-        if state != self._state[i]:
-            self._state[i] = state
-            if state in _FAILED and i not in self._faulted:
-                cause = self._sups[i].snapshot().cause
-                if cause and not cause.startswith(_OWN_CAUSES):
-                    self._faulted.add(i)
-                    self._on_fault(i, t, cause)
-        if info.est is not None:
-            self._p[i] = info.est.p
-            active = [s in _FLYING for s in self._state]
-            for a, b, d in self.watch.update(i, info.est.p, active):
-                self._event(t, "error", f"{self.names[a]} and {self.names[b]} are {d:.3f} m apart, under "
-                            f"fleet.min_separation {self.watch.min_separation:g} m: both hold, then land")
-                for k in (a, b):
-                    self._hold_then_land(k, t, t + self._hold_s, f"too close to {self.names[b if k == a else a]} "
-                                         f"({d:.3f} m)", "separation")
-
-    def _on_fault(self, i: int, t: float, cause: str) -> None:
-        others = [k for k in range(len(self.names)) if k != i]
-        self._event(t, "warning", f"{self.names[i]} ended its flight ({cause}); fleet.on_fault {self._policy}")
-        if self._policy == "land_all":
-            for k in others:
-                self._sups[k].request_land(f"fleet: {self.names[i]} failed ({cause})", "fleet_fault")
-        elif self._policy == "hold":
-            for k in others:
-                self._hold_then_land(k, t, self._land_deadline[k], f"fleet: {self.names[i]} failed ({cause}); "
-                                     "held, then landed", "fleet_fault")
-
-    def _hold_then_land(self, k: int, t: float, t_land: float, reason: str, cause: str) -> None:
-        if self._state[k] not in ("TAKEOFF", "TRACK"):
-            if self._state[k] in ("", "IDLE", "PREFLIGHT"):
-                self._sups[k].request_land(reason, cause)  # refuses a take-off not yet made
-            return  # already landing, landed or stopped: nothing to hold
-        if self._p[k] is not None:
-            self._refs[k].hold(t, self._p[k])
-        self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
-
-    def _schedule_land(self, k: int, t_land: float, reason: str, cause: str) -> None:
-        """Land drone k at its time ``t_land`` (the earliest schedule wins); on_tick requests it."""
-        if k not in self._land_at or t_land < self._land_at[k][0]:
-            self._land_at[k] = (t_land, reason, cause)
-
-    def _event(self, t: float, level: str, text: str) -> None:
-        self.events.append(f"{t:.3f} s {level}: {text}")
-        self._log.write("/events", t, {"level": level, "text": text, "source": "fleet"})
-
-
-@dataclass
-class _Tap:
-    coordinator: FleetCoordinator
-    index: int
-
-    def on_tick(self, tick: TickInfo) -> None:
-        self.coordinator.on_tick(self.index, tick)
 
 
 def run_fleet(cfg: Config, name_hint: str = "fleet",
@@ -269,8 +195,9 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
     from cfknode.sim_backend.faults import check_faults
 
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
+    forced = placed_fence_events(cfg, names, refs)
     radio_pps = preflight(cfg, names, configs, refs)
-    forced = refuse_unflyable(cfg)  # one vehicle for all drones: checked once
+    forced = [*refuse_unflyable(cfg), *forced]  # one vehicle for all drones: checked once
     check_online(cfg)
     models = [online_model_slot(c, build_model_slot(c)) for c in configs]  # online: each drone its own slot
     mpcs = [build_controller(c) for c in configs]  # built (and compiled) before the clock starts

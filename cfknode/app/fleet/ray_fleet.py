@@ -38,8 +38,10 @@ import numpy as np
 from cfknode import __version__
 from cfknode.app.bench.executor import ExecutorSettings, connect_ray
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.drone_actor import DroneActor, DroneSpec
-from cfknode.app.fleet import DroneResult, FleetCoordinator, FleetResult, drone_configs, preflight, true_min_separation
+from cfknode.app.fleet.drone_actor import DroneActor, DroneSpec
+from cfknode.app.bench.ray_probe import RayAddressError
+from cfknode.app.fleet.flight import (DroneResult, FleetCoordinator, FleetResult, drone_configs, placed_fence_events,
+                               preflight, true_min_separation)
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import FlightResult, MissionError, build_model_slot
@@ -129,9 +131,11 @@ class _RemoteReference:
     def __init__(self, link: _DroneLink, local: Any) -> None:
         self._link, self.segments = link, local.segments
 
-    def hold(self, t: float, p: Any) -> None:
-        # The actor holds at its own latest estimate and tick: its lockstep clock is its own.
-        self._link.actor.hold.remote(f"held by the fleet at its {t:.2f} s")
+    def hold(self, t: float, p: Any, to: Any = None, move_s: float = 0.0) -> None:
+        # The actor holds at its own latest estimate and tick (its lockstep clock is its own), and
+        # glides to ``to`` from there.
+        target = None if to is None else [float(v) for v in to]
+        self._link.actor.hold.remote(f"held by the fleet at its {t:.2f} s", target, move_s)
 
 
 class RemoteCoordinator(FleetCoordinator):
@@ -160,8 +164,9 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
                           "(--executor local) to learn online")
     names, configs, refs = drone_configs(cfg)
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
+    forced = placed_fence_events(cfg, names, refs)
     radio_pps = preflight(cfg, names, configs, refs)
-    forced = refuse_unflyable(cfg)
+    forced = [*refuse_unflyable(cfg), *forced]
     build_model_slot(configs[0])  # a bad model file is refused here, before any actor starts
     resources = [radio_resource(cfg, c.radio.uri) for c in configs]
     import ray
@@ -169,6 +174,8 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
     # A Ray started here is this machine alone: it has every simulated radio.
     try:
         owned = connect_ray(settings.address, len(names), {r: 1.0 for r in resources})
+    except RayAddressError as exc:  # a bad or unreachable address: the user's to fix
+        raise ConfigError(f"take-off refused: {exc}") from None
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {settings.address}" if settings.address else "a local Ray"
         raise MissionError(f"take-off refused: cannot join {where}: {str(exc).splitlines()[0][:200]}") from None

@@ -1,6 +1,6 @@
 """A fleet of named robots from the robots file: ``cfknode fly --robots cf1,cf2,cf3`` (docs/fleet.md).
 
-The hardware counterpart of ``run_fleet`` (cfknode/app/fleet.py), sharing its coordinator,
+The hardware counterpart of ``run_fleet`` (cfknode/app/fleet/flight.py), sharing its coordinator,
 log channels, pre-flight checks, flight and summary: every robot flies its own estimator,
 ``Controller`` and ``Supervisor`` in one event loop, on one wall clock (real time, not
 lockstep), with its own link and one shared mocap connection (backends/robot_fleet.py).
@@ -15,16 +15,18 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from cfknode.app.backends.robots import Robot, load_robots
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet import FleetCoordinator, FleetResult, fly_drones, preflight
+from cfknode.app.fleet.flight import (FleetCoordinator, FleetResult, fly_drones, placed_fence_events, preflight,
+                               separation_refusal)
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
-from cfknode.safety.separation import refusal
+from cfknode.safety.estop_mailbox import safe_name
 
 _logger = logging.getLogger(__name__)
 
@@ -46,7 +48,37 @@ def select_robots(cfg: Config, names: Sequence[str]) -> list[Robot]:
             f"{', '.join(disabled)} disabled (enabled: false)" if disabled else "") if part)
         raise ConfigError(f"--robots: {what} in {file.path}; known robots: {', '.join(enabled) or 'none'}"
                           + (f" (disabled: {', '.join(off)})" if off else ""))
-    return [file.robots[n] for n in names]
+    robots = [file.robots[n] for n in names]
+    clash = _first_clash(names, [safe_name(n) for n in names])
+    if clash is not None:
+        raise ConfigError(f"--robots: {clash[0]} and {clash[1]} share the file name {safe_name(clash[0])!r} (their "
+                          f"e-stop lock and mailbox entry); rename one in {file.path}")
+    clash = _first_clash(names, [link_identity(r.uri) for r in robots])
+    if clash is not None:
+        a, b = (file.robots[n] for n in clash)
+        raise ConfigError(f"--robots: {a.name} ({a.uri}) and {b.name} ({b.uri}) are the same link in {file.path}: "
+                          "one Crazyflie cannot fly as two robots")
+    return robots
+
+
+def link_identity(uri: str) -> tuple[str, ...]:
+    """What makes two URIs one vehicle: a radio's channel, data rate and address (the dongle index
+    aside: two dongles reach the same Crazyflie), anything else its whole URI."""
+    text = uri.strip()
+    m = re.fullmatch(r"radio://\d+/(\d+)/(\w+)(?:/([0-9A-Fa-f]+))?/?(\?.*)?", text)
+    if m is None:
+        return ("uri", text.lower())
+    return ("radio", str(int(m.group(1))), m.group(2).upper(), (m.group(3) or "E7E7E7E7E7").upper().rjust(10, "0"))
+
+
+def _first_clash(names: Sequence[str], keys: Sequence[Any]) -> tuple[str, str] | None:
+    """The first two names whose keys are equal, or None."""
+    seen: dict[Any, str] = {}
+    for name, key in zip(names, keys):
+        if key in seen:
+            return seen[key], name
+        seen[key] = name
+    return None
 
 
 def robot_references(cfg: Config, starts: Sequence[Sequence[float]]) -> list[HoldableReference]:
@@ -96,6 +128,7 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
     robots = select_robots(cfg, names)
     configs = [robot_config(cfg, r) for r in robots]
     refs = robot_references(cfg, [r.initial_position for r in robots])
+    placed_fence_events(cfg, names, refs)  # refused here; a forced fleet's events are logged once it connected
     radio_pps = preflight(cfg, names, configs, refs)
     return robots, configs, radio_pps
 
@@ -108,7 +141,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
     for ``fly_drones``."""
     from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
     from cfknode.app.backends.robot_fleet import RobotFleetBackend
-    from cfknode.app.fleet_learning import fleet_trainers
+    from cfknode.app.fleet.learning import fleet_trainers
     from cfknode.app.flight_checks import refuse_unflyable
     from cfknode.app.learning import online_model_slot
     from cfknode.app.mission import MissionError, build_controller, build_model_slot
@@ -137,7 +170,8 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
         with fleet_trainers(configs) as trainers, RobotFleetBackend.open(cfg, robots, console) as backend:
             # Where the mocap sees them, within the pre-flight tolerance of their initial positions.
             refs = robot_references(cfg, [d.start_position for d in backend.drones])
-            line = refusal(list(names), [r.inner for r in refs], cfg.fleet.min_separation)
+            forced.extend(placed_fence_events(cfg, names, refs))
+            line = separation_refusal(cfg, names, refs)
             if line is not None:
                 raise ConfigError(line)
 

@@ -1,0 +1,192 @@
+"""The fleet's coordinator: separation watch, fault policy and ordered landings (docs/fleet.md).
+
+``FleetCoordinator`` is a tick observer of every drone (``tap(i)``). Two drones closer than
+``fleet.min_separation``: both hover for ``fleet.hold_s``, then land. One drone's supervisor
+lands or stops it: ``fleet.on_fault`` says what the others do. A drone the fleet lands first
+glides clear of every drone below it (``safety/landing_spot.py``), and does not descend while
+a flying drone is below it: a stack lands from the bottom up, never one drone onto another.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from cfknode.app.config import Config
+from cfknode.flight.controller import TickInfo
+from cfknode.flight.formation import HoldableReference
+from cfknode.safety.geofence import Geofence
+from cfknode.safety.landing_spot import below, clear_spot
+from cfknode.safety.part_errors import signal_stop_text
+from cfknode.safety.separation import SeparationWatch
+from cfknode.safety.supervisor import Supervisor
+
+_FLYING = ("TAKEOFF", "TRACK", "LAND")
+# A drone lands at least this many min_separations (horizontally) from every drone below it, gliding
+# there first at GLIDE_SPEED: a drone's downwash reaches further down than sideways.
+LANDING_CLEARANCE = 1.5
+GLIDE_SPEED = 0.4  # m/s
+_FAILED = ("LAND", "EMERGENCY", "IDLE", "LANDED")
+# The fleet's own landings never trigger the fault policy; nor do stop signals, which every drone got.
+_OWN_CAUSES = ("separation", "fleet_fault", "sigint", "sigterm", "sighup")
+
+
+class FleetCoordinator:
+    """Separation watch and fault policy across the fleet; a tick observer of every drone (``tap(i)``)."""
+
+    def __init__(self, cfg: Config, names: Sequence[str], supervisors: Sequence[Supervisor],
+                 refs: Sequence[HoldableReference], log: Any) -> None:
+        self.names = list(names)
+        self._sups = list(supervisors)
+        self._refs = list(refs)
+        self._log = log
+        self._policy = cfg.fleet.on_fault
+        self._hold_s = cfg.fleet.hold_s
+        self._period = 1.0 / cfg.controller.rate_hz
+        # The nominal landing starts here; a held drone must be landing before it (the
+        # supervisor's nominal landing would otherwise follow the held reference and cut in the air).
+        self._land_deadline = [r.segments["land"][0] - 2.0 * self._period for r in refs]
+        self.watch = SeparationWatch(names, cfg.fleet.min_separation)
+        fence = Geofence.from_config(cfg.safety)
+        self._soft = (fence.soft_lo, fence.soft_hi)
+        self._centre = (float(cfg.trajectory.center[0]), float(cfg.trajectory.center[1]))
+        self._spots: dict[int, np.ndarray] = {}  # where each drone glides before it lands (clear of those below)
+        self._glide_end: dict[int, float] = {}  # flight time each drone's glide there ends
+        self._state = [""] * len(names)
+        self._p: list[np.ndarray | None] = [None] * len(names)
+        self._land_at: dict[int, tuple[float, str, str]] = {}
+        self._faulted: set[int] = set()
+        self._signals: deque[str] = deque()  # stop signals not yet on /events (a handler must not write the log)
+        self._signals_logged = 0
+        self.events: list[str] = []
+
+    def tap(self, i: int) -> "_Tap":
+        return _Tap(self, i)
+
+    def interrupt(self, signal_name: str = "SIGINT") -> None:
+        """A stop signal for the whole fleet: every drone's supervisor gets it (the first lands,
+        a second stops the motors). Safe in a signal handler: it only appends to queues."""
+        self._signals.append(signal_name)
+        for sup in self._sups:
+            sup.interrupt(signal_name)
+
+    def log_signals(self, t: float) -> None:
+        """Put the stop signals received since the last call on ``/events`` at time ``t``."""
+        while self._signals:
+            name = self._signals.popleft()
+            self._signals_logged += 1
+            text = signal_stop_text(name)
+            if self._signals_logged == 1:
+                again = "Ctrl-C again" if name == "SIGINT" else f"another {name} (or Ctrl-C)"
+                self._event(t, "warning", f"{text}: every drone lands; {again} stops them all")
+            else:
+                self._event(t, "error", f"{text} again: every drone stops its motors")
+
+    def on_tick(self, i: int, info: TickInfo) -> None:
+        t = info.t
+        if self._signals:
+            self.log_signals(t)
+        if info.est is not None:
+            self._p[i] = info.est.p
+        pending = self._land_at.get(i)
+        # Bottom up: not while a flying drone is below (until its nominal landing would start).
+        if pending is not None and t >= pending[0] - 1e-9 and (t >= self._land_deadline[i] or not self._blocked(i)):
+            del self._land_at[i]
+            self._sups[i].request_land(pending[1], pending[2])
+        state = info.supervisor_state
+        if state != self._state[i]:
+            self._state[i] = state
+            if state in _FAILED and i not in self._faulted:
+                cause = self._sups[i].snapshot().cause
+                if cause and not cause.startswith(_OWN_CAUSES):
+                    self._faulted.add(i)
+                    self._on_fault(i, t, cause)
+        if info.est is not None:
+            active = [s in _FLYING for s in self._state]
+            for a, b, d in self.watch.update(i, info.est.p, active):
+                self._event(t, "error", f"{self.names[a]} and {self.names[b]} are {d:.3f} m apart, under "
+                            f"fleet.min_separation {self.watch.min_separation:g} m: both hold, then land")
+                for k in self._bottom_up((a, b)):
+                    self._hold_then_land(k, t, t + self._hold_s, f"too close to {self.names[b if k == a else a]} "
+                                         f"({d:.3f} m)", "separation")
+
+    def _on_fault(self, i: int, t: float, cause: str) -> None:
+        others = [k for k in range(len(self.names)) if k != i]
+        self._event(t, "warning", f"{self.names[i]} ended its flight ({cause}); fleet.on_fault {self._policy}")
+        if self._policy == "land_all":
+            for k in self._bottom_up(others):  # at once, or as soon as it has glided clear of those below
+                self._hold_then_land(k, t, t, f"fleet: {self.names[i]} failed ({cause})", "fleet_fault")
+        elif self._policy == "hold":
+            for k in self._bottom_up(others):
+                self._hold_then_land(k, t, self._land_deadline[k], f"fleet: {self.names[i]} failed ({cause}); "
+                                     "held, then landed", "fleet_fault")
+
+    def _hold_then_land(self, k: int, t: float, t_land: float, reason: str, cause: str) -> None:
+        """Hold drone k (gliding clear of the drones below it first), then land it at ``t_land`` or
+        once the glide ends, whichever is later, never after its nominal landing starts."""
+        if self._state[k] not in ("TAKEOFF", "TRACK"):
+            if self._state[k] in ("", "IDLE", "PREFLIGHT"):
+                self._sups[k].request_land(reason, cause)  # refuses a take-off not yet made
+            return  # already landing, landed or stopped: nothing to hold
+        p = self._p[k]
+        if p is not None and k not in self._spots:  # held already: its first spot and glide stand
+            spot, move_s = self._landing_spot(k, p)
+            self._spots[k], self._glide_end[k] = spot, t + move_s
+            if move_s > 0.0:
+                self._refs[k].hold(t, p, to=spot, move_s=move_s)
+            elif t_land > t:
+                self._refs[k].hold(t, p)
+        t_land = max(t_land, self._glide_end.get(k, t_land))  # not before it is clear of those below
+        if t_land <= t and not self._blocked(k):
+            self._sups[k].request_land(reason, cause)  # clear of those below: it lands where it is, now
+            return
+        self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
+
+    def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
+        """Where drone k lands (clear of every drone below it and of their spots) and the glide's duration."""
+        others = [q for j in range(len(self.names)) if j != k for q in (self._p[j], self._spots.get(j))]
+        spot = clear_spot(p, below(p, others), LANDING_CLEARANCE * self.watch.min_separation, *self._soft,
+                          away_from=self._centre)
+        if spot is None:
+            return np.asarray(p, dtype=float).copy(), 0.0  # nowhere clear: land in place (and logged as close)
+        distance = float(np.hypot(*(spot[:2] - np.asarray(p)[:2])))
+        return spot, (distance / GLIDE_SPEED if distance > 0 else 0.0)
+
+    def _bottom_up(self, drones: Sequence[int]) -> list[int]:
+        """``drones``, lowest first: each one's spot then avoids the spots of those below it."""
+        return sorted(drones, key=lambda k: float(self._p[k][2]) if self._p[k] is not None else 0.0)
+
+    def _blocked(self, k: int) -> bool:
+        """Whether a flying drone is below drone k within the separation, horizontally: k waits to land."""
+        p = self._p[k]
+        if p is None:
+            return False
+        for j, q in enumerate(self._p):
+            if j != k and q is not None and self._state[j] in _FLYING and float(q[2]) < float(p[2]):
+                if float(np.hypot(q[0] - p[0], q[1] - p[1])) < self.watch.min_separation:
+                    return True
+        return False
+
+    def _schedule_land(self, k: int, t_land: float, reason: str, cause: str) -> None:
+        """Land drone k at its time ``t_land`` (the earliest schedule wins); on_tick requests it."""
+        if k not in self._land_at or t_land < self._land_at[k][0]:
+            self._land_at[k] = (t_land, reason, cause)
+
+    def _event(self, t: float, level: str, text: str) -> None:
+        self.events.append(f"{t:.3f} s {level}: {text}")
+        self._log.write("/events", t, {"level": level, "text": text, "source": "fleet"})
+
+
+@dataclass
+class _Tap:
+    coordinator: FleetCoordinator
+    index: int
+
+    def on_tick(self, tick: TickInfo) -> None:
+        self.coordinator.on_tick(self.index, tick)
+
+
+__all__ = ["FleetCoordinator", "GLIDE_SPEED", "LANDING_CLEARANCE"]

@@ -1,0 +1,176 @@
+"""A stacked fleet: every placed trajectory is checked against the fence before take-off, and the
+fleet never lands one drone onto another (it glides clear of those below, then lands)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.fleet.flight import drone_configs, placed_fence_events, preflight, run_fleet
+from cfknode.app.fleet.coordinator import LANDING_CLEARANCE, FleetCoordinator
+from cfknode.flight.controller import TickInfo
+from cfknode.flight.formation import HoldableReference
+from cfknode.flight.trajectory import make_trajectory
+from cfknode.kernel.setpoint import AttitudeSetpoint
+from cfknode.safety.landing_spot import below, clear_spot
+
+SHORT = {"trajectory.duration": 1.0, "trajectory.takeoff_duration": 1.5, "trajectory.settle_duration": 0.5,
+         "trajectory.land_duration": 1.5, "dashboard.enabled": False}
+
+
+def stack_cfg(tmp_path, size=3, **over):
+    return load_config(None, {**SHORT, "fleet.size": size, "fleet.layout": "stack", "log.dir": str(tmp_path),
+                              "safety.estop_dir": str(tmp_path / "estop"), **over})
+
+
+# --- before take-off ----------------------------------------------------------------------------
+
+
+def test_a_stacked_drone_above_the_fence_is_refused_in_one_line_naming_it(tmp_path):
+    cfg = stack_cfg(tmp_path)  # levels 1.0, 1.5, 2.0 m; the soft box ends at 1.8 m
+    names, _, refs = drone_configs(cfg)
+    with pytest.raises(ConfigError) as err:
+        placed_fence_events(cfg, names, refs)
+    text = str(err.value)
+    assert "\n" not in text and text.startswith("refusing to take off: cf3's placed trajectory")
+    assert "z = 2.00 m, beyond the fence's 1.80 m" in text and "--force" in text
+
+
+def test_forced_it_flies_clamped_with_an_event_and_the_clamped_stack_is_checked_for_separation(tmp_path):
+    cfg = stack_cfg(tmp_path, **{"hardware.force": True})
+    names, configs, refs = drone_configs(cfg)
+    events = placed_fence_events(cfg, names, refs)
+    assert len(events) == 1 and "take-off FORCED" in events[0]["text"] and "cf3" in events[0]["text"]
+    preflight(cfg, names, configs, refs)  # clamped to 1.8 m: 0.30 m above cf2, not closer than 0.3 m
+    tighter = stack_cfg(tmp_path, **{"hardware.force": True, "fleet.min_separation": 0.35})
+    with pytest.raises(ConfigError, match="references of cf2 and cf3 come 0.3[0-4][0-9] m apart"):
+        preflight(tighter, *drone_configs(tighter))
+
+
+def test_the_cli_refuses_the_stack_with_exit_status_2(tmp_path, capsys):
+    from cfknode.app.cli import main
+
+    code = main(["fly", "--fleet", "3", "--fleet-layout", "stack", "--headless", "--log-dir", str(tmp_path),
+                 "--set", f"safety.estop_dir={tmp_path / 'estop'}", "--duration", "5"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "cf3's placed trajectory" in err[0]
+
+
+# --- where a drone lands ------------------------------------------------------------------------
+
+
+def test_clear_spot_is_the_nearest_point_clear_of_the_drones_below():
+    lo, hi = np.array([-1.3, -1.3, -0.2]), np.array([1.3, 1.3, 1.8])
+    p = np.array([0.5, 0.0, 1.5])
+    assert np.array_equal(clear_spot(p, [[1.2, 0.0, 1.0]], 0.45, lo, hi), p)  # clear already: stays
+    spot = clear_spot(p, [[0.5, 0.0, 1.0]], 0.45, lo, hi, away_from=(0.0, 0.0))
+    assert spot[2] == 1.5 and np.hypot(*(spot[:2] - [0.5, 0.0])) == pytest.approx(0.45)
+    assert spot[0] == pytest.approx(0.95)  # outward, away from the pattern's centre
+    # Near the fence it goes the other way; boxed in by drones everywhere, there is none.
+    spot = clear_spot([1.2, 0.0, 1.5], [[1.2, 0.0, 0.0]], 0.45, lo, hi, away_from=(0.0, 0.0))
+    assert np.all(spot[:2] <= hi[:2]) and np.hypot(*(spot[:2] - [1.2, 0.0])) >= 0.45 - 1e-9
+    ring = [[0.5 + 0.3 * np.cos(a), 0.3 * np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 40)]
+    assert clear_spot(p, ring, 2.0, lo, hi) is None
+    assert [q[2] for q in below(p, [[0, 0, 1.0], None, [0, 0, 1.6]])] == [1.0]
+
+
+def test_a_held_reference_glides_to_its_spot_starting_and_ending_at_rest(tmp_path):
+    cfg = stack_cfg(tmp_path)
+    ref = HoldableReference(make_trajectory(cfg.trajectory, (0.5, 0.0, 0.0)))
+    ref.hold(3.0, [0.5, 0.0, 1.0], to=[0.95, 0.0, 1.0], move_s=1.0)
+    s = ref.sample(np.array([3.0, 3.5, 4.0, 5.0]))
+    assert np.allclose(s.p[:, 0], [0.5, 0.725, 0.95, 0.95]) and np.allclose(s.p[:, 2], 1.0)
+    assert np.allclose(s.v[[0, 2, 3]], 0.0) and s.v[1, 0] == pytest.approx(1.875 * 0.45)
+    assert np.array_equal(ref.hold_target, [0.95, 0.0, 1.0])
+
+
+class _Sup:
+    def __init__(self):
+        self.lands = []
+
+    def request_land(self, reason, cause):
+        self.lands.append(cause)
+
+    def snapshot(self):
+        return type("S", (), {"cause": ""})()
+
+
+class _Log:
+    def write(self, topic, t, msg):
+        pass
+
+
+def _tick(t, p, state):
+    est = type("E", (), {"p": np.asarray(p, dtype=float)})()
+    return TickInfo(t, est, np.zeros(3), np.zeros(3), np.zeros(3), AttitudeSetpoint(0, 0, 0, 0), "mpc", 0.0, 0.0,
+                    False, 0, state)
+
+
+def test_a_close_pair_in_a_stack_glides_clear_of_every_drone_below_then_lands(tmp_path):
+    cfg = stack_cfg(tmp_path, **{"trajectory.duration": 10.0, "hardware.force": True})
+    names, _, refs = drone_configs(cfg)
+    sups = [_Sup(), _Sup(), _Sup()]
+    coord = FleetCoordinator(cfg, names, sups, refs, _Log())
+    column = [[0.5, 0.0, 1.0], [0.5, 0.0, 1.5], [0.5, 0.0, 1.78]]  # cf2 and cf3 0.28 m apart
+    for i, p in enumerate(column):
+        coord.on_tick(i, _tick(4.0, p, "TRACK"))
+    clearance = LANDING_CLEARANCE * cfg.fleet.min_separation
+    spot2, spot3 = refs[1].hold_target, refs[2].hold_target
+    assert np.hypot(*(spot2[:2] - [0.5, 0.0])) >= clearance - 1e-9  # clear of cf1's column
+    for q in ([0.5, 0.0], spot2[:2]):  # cf3: clear of cf1, cf2 and where cf2 lands
+        assert np.hypot(*(spot3[:2] - q)) >= clearance - 1e-9
+    assert refs[0].held_since is None  # cf1 flies on
+    coord.on_tick(1, _tick(4.0 + cfg.fleet.hold_s, spot2, "TRACK"))
+    assert sups[1].lands == []  # still gliding: it lands once at its spot
+    for i, p in ((0, column[0]), (1, spot2), (2, spot3)):
+        coord.on_tick(i, _tick(6.0, p, "TRACK"))
+    assert sups[1].lands == ["separation"] and sups[2].lands == ["separation"]
+
+
+def test_a_drone_does_not_descend_while_a_flying_drone_is_right_below(tmp_path):
+    cfg = stack_cfg(tmp_path, size=2, **{"trajectory.duration": 10.0, "fleet.on_fault": "land_all"})
+    names, _, refs = drone_configs(cfg)
+    sups = [_Sup(), _Sup()]
+    coord = FleetCoordinator(cfg, names, sups, refs, _Log())
+    coord.on_tick(0, _tick(4.0, [0.5, 0.0, 1.0], "TRACK"))
+    coord.on_tick(1, _tick(4.0, [1.2, 1.2, 1.5], "TRACK"))
+    coord._schedule_land(1, 4.1, "test", "fleet_fault")  # due, but cf1 flies right below it
+    coord.on_tick(0, _tick(4.1, [1.2, 1.2, 1.0], "TRACK"))
+    coord.on_tick(1, _tick(4.1, [1.2, 1.2, 1.5], "TRACK"))
+    assert sups[1].lands == []
+    coord.on_tick(0, _tick(4.2, [0.5, 0.0, 1.0], "TRACK"))  # it has moved on
+    coord.on_tick(1, _tick(4.2, [1.2, 1.2, 1.5], "TRACK"))
+    assert sups[1].lands == ["fleet_fault"]
+
+
+# --- in flight ----------------------------------------------------------------------------------
+
+
+def test_a_fault_below_never_lands_the_upper_drone_onto_the_lower(tmp_path):
+    """cf1 loses the mocap under cf2 and lands; land_all lands cf2, which glides clear first."""
+    cfg = stack_cfg(tmp_path, size=2, **{"trajectory.duration": 3.0, "sim.downwash.enabled": True,
+                                        "faults.mocap_outages": [{"t": 2.5, "duration": 1.0}]})
+    result = run_fleet(cfg)
+    causes = [d.outcome.cause for d in result.drones]
+    assert causes == ["mocap_lost", "fleet_fault"]
+    assert all(d.outcome.state.value in ("LANDED", "EMERGENCY") for d in result.drones)
+    # Closest true distance while either flew: never under the minimum separation.
+    assert result.min_separation_m >= cfg.fleet.min_separation
+    cf2 = result.drones[1].record
+    end = cf2.p[cf2.ticks - 1]
+    assert np.hypot(*(end[:2] - result.drones[0].record.p[result.drones[0].record.ticks - 1][:2])) >= 0.3
+
+
+def test_a_pair_that_parted_and_comes_close_again_is_reported_again():
+    from cfknode.safety.separation import REARM_M, SeparationWatch
+
+    watch = SeparationWatch(["a", "b"], 0.3)
+    both = [True, True]
+    watch.update(0, (0, 0, 1.0), both)
+    assert watch.update(1, (0, 0, 1.25), both) == [(0, 1, pytest.approx(0.25))]
+    assert watch.update(1, (0, 0, 1.32), both) == []  # jitter around the minimum: not parted
+    assert watch.update(1, (0, 0, 1.2), both) == []
+    watch.update(1, (0.3 + REARM_M + 0.01, 0, 1.0), both)  # parted (a glide clear)
+    assert watch.update(1, (0.1, 0, 1.0), both) == [(0, 1, pytest.approx(0.1))]  # e.g. while landing
