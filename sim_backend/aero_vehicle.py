@@ -79,6 +79,15 @@ class AeroVehicle(Vehicle):
                    (cmd_forces[3] - f4) * k))
         return dx
 
+    def reset(self, state13: Sequence[float], motor_forces: Sequence[float] = (0.0, 0.0, 0.0, 0.0)) -> None:
+        super().reset(state13, motor_forces)
+        self._hold_rotor_speed()
+
+    def _hold_rotor_speed(self) -> None:
+        # The rotor speeds, held over a step like the fast force: the motors lag by ~8 steps.
+        x = self._x
+        self._rotor_speed = rotor_speed_ratio(x[13], x[14], x[15], x[16], self._hover_force)
+
     def ground_lift(self, thrust: float) -> float:
         """Upward force [N] of motors and air on the vehicle resting on the floor (the ground effect's most)."""
         return thrust * (1.0 + ground_effect_fraction(0.0, self._ground_scale)) + super().ground_lift(0.0)
@@ -89,9 +98,8 @@ class AeroVehicle(Vehicle):
         self._steps += 1
         if self._gusts:
             self._wind = wind_at(t, self._calm, self._gusts)
+        self._hold_rotor_speed()
         x = self._x
-        # The rotor speeds, held over the step like the fast force: the motors lag by ~8 steps.
-        self._rotor_speed = rotor_speed_ratio(x[13], x[14], x[15], x[16], self._hover_force)
         if self._fast is not None:
             w = self._wind
             airspeed = math.sqrt((x[3] - w[0]) ** 2 + (x[4] - w[1]) ** 2 + (x[5] - w[2]) ** 2)

@@ -51,7 +51,8 @@ def downwash_force_z(lower: Sequence[float], upper: Sequence[float], upper_thrus
     return -cfg.peak_fraction * upper_thrust * (1.0 - dz / cfg.height) * radial
 
 
-def downwash_forces(states: Sequence[Sequence[float]], cfg: DownwashConfig | WakeLaw) -> list[tuple[float, float, float]]:
+def downwash_forces(states: Sequence[Sequence[float]],
+                    cfg: DownwashConfig | WakeLaw) -> list[tuple[float, float, float]]:
     """The world force on each drone from all the others' wakes; ``states`` are 17-states
     (p, v, q, w, motor forces) as ``Vehicle.state_list`` returns them. ``cfg``: this module's
     model's settings, or any wake law ``(lower, upper, upper_thrust) -> F_z`` (the realistic

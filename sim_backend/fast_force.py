@@ -3,8 +3,9 @@
 What a real Crazyflie's measured acceleration keeps beyond any model of its state (turbulence,
 rotor and frame vibration, blade flapping): essentially zero-mean, mostly faster than 1 Hz, and
 larger the faster the vehicle flies (docs/hardware.md#simulator). Per world axis, unit white
-noise drawn once per plant step passes a first-order low-pass at the band's upper edge, then a
-first-order high-pass at its lower edge, is scaled to unit variance and multiplied by
+noise drawn once per plant step passes two first-order low-passes at the band's upper edge (so
+little is left a few times above it), then a first-order high-pass at its lower edge (so it has
+no mean and little below it), is scaled to unit variance and multiplied by
 
     rms(v) = rms_hover + rms_per_speed2 * v^2        (v: airspeed, m/s; rms in m/s^2)
 
@@ -24,23 +25,28 @@ _STREAM_KEY = 0x414552  # "AER": independent of the mocap's and the acceleromete
 _BLOCK = 1536  # normals drawn at a time (3 axes x 512 steps): one small draw per second of flight
 
 
+def band_step(a_low: float, a_high: float, state: tuple[float, float, float],
+              noise: float) -> tuple[float, float, float]:
+    """One step of the band filter: two low-passes (pole ``a_low``) then a high-pass (pole ``a_high``).
+    ``state`` = (first low-pass, second low-pass, high-pass) outputs; returns the new state."""
+    first, second, high = state
+    b = 1.0 - a_low
+    first_new = a_low * first + b * noise
+    second_new = a_low * second + b * first_new
+    return first_new, second_new, a_high * (high + second_new - second)
+
+
 def unit_variance_gain(a_low: float, a_high: float) -> float:
-    """1 / the stationary standard deviation of the low-pass (pole ``a_low``) then high-pass (pole
-    ``a_high``) cascade driven by unit white noise, from its impulse response."""
-    low = high = prev = 0.0
-    total = 0.0
-    w = 1.0
-    k = 0
-    # Both responses decay geometrically: stop once the slower one is below 1e-12 of its start.
+    """1 / the stationary standard deviation of ``band_step`` driven by unit white noise, from its
+    impulse response."""
+    state = band_step(a_low, a_high, (0.0, 0.0, 0.0), 1.0)
+    total = state[2] * state[2]
+    # The responses decay geometrically: stop once the slowest is below 1e-13 of its start.
     slowest = max(a_low, a_high)
-    steps = int(math.ceil(math.log(1e-12) / math.log(slowest))) + 2 if slowest > 0.0 else 2
-    while k < steps:
-        low = a_low * low + (1.0 - a_low) * w
-        high = a_high * (high + low - prev)
-        prev = low
-        total += high * high
-        w = 0.0
-        k += 1
+    steps = 2 * int(math.ceil(math.log(1e-13) / math.log(slowest))) + 2 if slowest > 0.0 else 2
+    for _ in range(steps):
+        state = band_step(a_low, a_high, state, 0.0)
+        total += state[2] * state[2]
     return 1.0 / math.sqrt(total)
 
 
@@ -52,7 +58,7 @@ class FastForce:
         low_hz, high_hz = band_hz
         if not 0.0 < low_hz < high_hz:
             raise ValueError(f"fast force band must be 0 < low < high Hz, got {band_hz}")
-        self._a_low = math.exp(-2.0 * math.pi * high_hz * dt)  # the low-pass sets the upper edge
+        self._a_low = math.exp(-2.0 * math.pi * high_hz * dt)  # the low-passes set the upper edge
         self._a_high = math.exp(-2.0 * math.pi * low_hz * dt)
         self._gain = unit_variance_gain(self._a_low, self._a_high)
         self._rms0 = rms_hover
@@ -60,8 +66,8 @@ class FastForce:
         self._rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_STREAM_KEY,)))
         self._noise: list[float] = []
         self._i = 0
-        self._low = (0.0, 0.0, 0.0)  # the low-pass's output, per axis
-        self._high = (0.0, 0.0, 0.0)  # the high-pass's (the band's) output, per axis
+        zero = (0.0, 0.0, 0.0)
+        self._state = (zero, zero, zero)  # band_step's state, per axis
 
     def rms(self, airspeed: float) -> float:
         """Per-axis RMS [m/s^2] at ``airspeed`` m/s."""
@@ -75,15 +81,13 @@ class FastForce:
         i = self._i
         self._i = i + 3
         noise, a_low, a_high = self._noise, self._a_low, self._a_high
-        b_low = 1.0 - a_low
-        lx, ly, lz = self._low
-        hx, hy, hz = self._high
-        nx, ny, nz = a_low * lx + b_low * noise[i], a_low * ly + b_low * noise[i + 1], a_low * lz + b_low * noise[i + 2]
-        hx, hy, hz = a_high * (hx + nx - lx), a_high * (hy + ny - ly), a_high * (hz + nz - lz)
-        self._low = (nx, ny, nz)
-        self._high = (hx, hy, hz)
+        sx, sy, sz = self._state
+        sx = band_step(a_low, a_high, sx, noise[i])
+        sy = band_step(a_low, a_high, sy, noise[i + 1])
+        sz = band_step(a_low, a_high, sz, noise[i + 2])
+        self._state = (sx, sy, sz)
         scale = self._gain * self.rms(airspeed)
-        return scale * hx, scale * hy, scale * hz
+        return scale * sx[2], scale * sy[2], scale * sz[2]
 
 
-__all__ = ["FastForce", "unit_variance_gain"]
+__all__ = ["FastForce", "band_step", "unit_variance_gain"]

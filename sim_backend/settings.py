@@ -35,7 +35,8 @@ class AeroTerms:
     downwash_width: float = 0.058  # m, standard deviation of the wake's lateral Gaussian
     fast_rms: float = 0.15  # m/s^2 per axis, the fast random force's RMS at zero airspeed
     fast_rms_per_speed2: float = 0.08  # m/s^2 per (m/s)^2 of airspeed, added to fast_rms
-    fast_band_hz: tuple[float, float] = (1.0, 10.0)  # Hz, the fast force's band (first-order edges)
+    # Hz, the fast force's band: a first-order high-pass, a second-order low-pass.
+    fast_band_hz: tuple[float, float] = (1.0, 10.0)
 
 
 @dataclass(frozen=True)
