@@ -187,3 +187,25 @@ def test_bad_aero_settings_are_one_line_config_errors(overrides, says):
     with pytest.raises(ConfigError, match=says) as err:
         load_config(overrides=overrides)
     assert "\n" not in str(err.value)
+
+
+def test_a_gust_on_the_realistic_plant_pushes_through_the_rotors():
+    from cfknode.app.config import Gust
+    from cfknode.sim_backend.faults import install_faults
+
+    cfg = load_config(overrides={**_terms(rotor_drag=0.25), "sim.initial_position": [0.0, 0.0, 1.0]})
+    faults = load_config(overrides={"faults.gusts": [{"t": 0.01, "duration": 0.01, "wind": [4.0, 0.0, 0.0]}]}).faults
+    assert faults.gusts == (Gust(0.01, 0.01, (4.0, 0.0, 0.0)),)
+    sim = SimCrazyflie(cfg.vehicle, cfg.sim)
+    install_faults(sim, faults)
+    assert isinstance(sim.vehicle, AeroVehicle)
+    hover = [cfg.vehicle.mass * G / 4.0 / cfg.vehicle.thrust_max_per_motor * 65535] * 4
+    sim.vehicle.reset([0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0], [cfg.vehicle.mass * G / 4.0] * 4)
+    vx = []
+    for _ in range(15):
+        sim.vehicle.step(hover, cfg.vehicle.mass)
+        vx.append(sim.vehicle.state[3])
+    assert vx[4] == 0.0  # calm before 10 ms
+    # During the 10 ms gust: 0.25 m/s^2 per m/s of the 4 m/s airspeed, about 1 m/s^2.
+    assert (vx[9] - vx[4]) / 0.01 == pytest.approx(1.0, rel=0.05)
+    assert vx[14] < vx[10]  # the rotors' drag slows it after
