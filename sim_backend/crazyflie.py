@@ -19,7 +19,7 @@ from cfknode.sim_backend.firmware import Firmware
 from cfknode.sim_backend.plant import thrust_scale_at
 from cfknode.sim_backend.scenario import MassSchedule
 from cfknode.sim_backend.settings import SimConfig
-from cfknode.sim_backend.vehicle import Vehicle
+from cfknode.sim_backend.aero_vehicle import make_vehicle
 
 StepObserver = Callable[[float, np.ndarray], None]
 
@@ -39,7 +39,7 @@ class SimCrazyflie:
         self.dt = sim.dt
         self.lock = threading.RLock()
         self.rng = np.random.default_rng(sim.seed)
-        self.vehicle = Vehicle(vehicle, sim)
+        self.vehicle = make_vehicle(vehicle, sim)
         self.firmware = Firmware(vehicle, self.dt, lock=self.lock, attitude_gain=sim.attitude_gain,
                                  yaw_gain=sim.yaw_gain)
         self.battery = Battery(sim.battery_voltage)

@@ -17,20 +17,26 @@ control using learned interactions", ICRA 2020) measured the interaction on stac
 noticeably up to about half a metre of vertical separation. The defaults (15 % of the upper
 thrust right below, half of that at 0.5 m, a 0.1 m Gaussian radius) sit in that range; they
 are configuration (``sim.downwash``), not measurements of this simulator.
+
+The realistic plant (``sim.aero: realistic``) has its own, measured wake instead
+(``measured_wake``: Neural-Swarm2's learned interaction model, docs/hardware.md#simulator).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from functools import partial
+from typing import Callable, Sequence
 
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.scenario import drag_force
-from cfknode.sim_backend.settings import DownwashConfig, SimConfig
+from cfknode.sim_backend.aero import measured_downwash_force_z
+from cfknode.sim_backend.settings import AeroTerms, DownwashConfig, SimConfig
 from cfknode.sim_backend.vehicle import FLOATS, Vehicle, motor_wrench
 from cfknode.models.quadrotor import rigid_body_rhs
 
 _NO_FORCE = (0.0, 0.0, 0.0)
+WakeLaw = Callable[[Sequence[float], Sequence[float], float], float]
 
 
 def downwash_force_z(lower: Sequence[float], upper: Sequence[float], upper_thrust: float,
@@ -45,18 +51,27 @@ def downwash_force_z(lower: Sequence[float], upper: Sequence[float], upper_thrus
     return -cfg.peak_fraction * upper_thrust * (1.0 - dz / cfg.height) * radial
 
 
-def downwash_forces(states: Sequence[Sequence[float]], cfg: DownwashConfig) -> list[tuple[float, float, float]]:
+def downwash_forces(states: Sequence[Sequence[float]],
+                    cfg: DownwashConfig | WakeLaw) -> list[tuple[float, float, float]]:
     """The world force on each drone from all the others' wakes; ``states`` are 17-states
-    (p, v, q, w, motor forces) as ``Vehicle.state_list`` returns them."""
+    (p, v, q, w, motor forces) as ``Vehicle.state_list`` returns them. ``cfg``: this module's
+    model's settings, or any wake law ``(lower, upper, upper_thrust) -> F_z`` (the realistic
+    plant's: ``measured_wake``)."""
+    law = cfg if callable(cfg) else partial(downwash_force_z, cfg=cfg)
     thrusts = [x[13] + x[14] + x[15] + x[16] for x in states]
     out = []
     for i, xi in enumerate(states):
         fz = 0.0
         for j, xj in enumerate(states):
             if j != i:
-                fz += downwash_force_z(xi, xj, thrusts[j], cfg)
+                fz += law(xi, xj, thrusts[j])
         out.append((0.0, 0.0, fz) if fz != 0.0 else _NO_FORCE)
     return out
+
+
+def measured_wake(terms: AeroTerms) -> WakeLaw:
+    """The realistic plant's wake law (Neural-Swarm2's strength and width, sim_backend/aero.py)."""
+    return partial(measured_downwash_force_z, scale=terms.downwash, width=terms.downwash_width)
 
 
 class DownwashVehicle(Vehicle):
@@ -84,4 +99,4 @@ class DownwashVehicle(Vehicle):
         return dx
 
 
-__all__ = ["DownwashVehicle", "downwash_force_z", "downwash_forces"]
+__all__ = ["DownwashVehicle", "WakeLaw", "downwash_force_z", "downwash_forces", "measured_wake"]

@@ -8,7 +8,8 @@ fault-free and the flight path is the one that flies on hardware:
   in a row end the link for good ("Too many packets lost"): from then on nothing arrives,
   and the firmware's own watchdog takes over (docs/hardware.md#commander-watchdog). ``link_status`` is what the host's
   link statistics would show: the silence since the last acknowledged packet, and the loss.
-- gusts: a ``Vehicle`` whose wind follows the gust schedule (it acts through ``sim.drag``).
+- gusts: a ``Vehicle`` whose wind follows the gust schedule (it acts through ``sim.drag``, and on
+  the realistic plant through the rotors' drag too).
 - battery drop: the cell's open-circuit voltage falls to a value at a time (a failing cell);
   the battery model's sag under load then does the rest.
 - solver failures: the MPC's answer is replaced by a failed one inside the windows.
@@ -35,6 +36,8 @@ from cfknode.kernel.errors import ConfigError
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.sim_backend.settings import FaultsConfig, FaultWindow, Gust, SimConfig
 from cfknode.kernel.link import LinkStatus
+from cfknode.sim_backend.aero_vehicle import AeroVehicle
+from cfknode.sim_backend.scenario import wind_at
 from cfknode.sim_backend.vehicle import Vehicle
 
 _TIME_EPS = 1e-9
@@ -132,18 +135,14 @@ class GustVehicle(Vehicle):
     def __init__(self, vehicle: VehicleConfig, sim: SimConfig, gusts: Sequence[Gust]) -> None:
         super().__init__(vehicle, sim)
         self._calm = tuple(sim.wind)
-        self._gusts = tuple((g.t, g.t + g.duration, tuple(g.wind)) for g in gusts)
+        self._gusts = tuple(gusts)
         self._steps = 0
 
     def step(self, motor_commands: Sequence[float], mass: float) -> None:
         # Called once per plant step (SimCrazyflie.step_to), so the step count is sim time.
         t = self._steps * self.dt
         self._steps += 1
-        wind = self._calm
-        for t0, t1, gust in self._gusts:
-            if t0 - _TIME_EPS <= t < t1 - _TIME_EPS:
-                wind = gust
-        self._wind = wind
+        self._wind = wind_at(t, self._calm, self._gusts)
         super().step(motor_commands, mass)
 
 
@@ -275,7 +274,10 @@ def install_faults(sim: Any, faults: FaultsConfig) -> SimFaults:
     if faults.gusts:
         if sim.steps != 0:
             raise RuntimeError("gusts must be installed before the simulator's first step")
-        sim.vehicle = GustVehicle(sim.vehicle_config, sim.sim_config, faults.gusts)
+        if sim.sim_config.aero == "realistic":
+            sim.vehicle = AeroVehicle(sim.vehicle_config, sim.sim_config, faults.gusts)
+        else:
+            sim.vehicle = GustVehicle(sim.vehicle_config, sim.sim_config, faults.gusts)
     if faults.radio_outages:
         installed.blackout = RadioBlackout(sim, faults.radio_outages)
     if faults.battery_drop_at >= 0:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import bisect
 from typing import Sequence
 
-from cfknode.sim_backend.settings import MassChange
+from cfknode.sim_backend.settings import Gust, MassChange
 
 # A plant step starting at t_k applies a change scheduled at t_c when t_k >= t_c - TIME_TOL:
 # step times are k * dt in binary floating point, so a change "at 2.0 s" must not slip a
@@ -30,6 +30,18 @@ def mass_at(t: float, nominal_mass: float, changes: Sequence[MassChange]) -> flo
             latest = change.t
             factor = change.factor
     return factor * nominal_mass
+
+
+def wind_at(t: float, calm: Sequence[float], gusts: Sequence[Gust]) -> Sequence[float]:
+    """The air velocity [m/s] for the plant step starting at ``t``: the last listed gust blowing then, else ``calm``.
+
+    A gust blows over [t, t + duration), both ends moved ``TIME_TOL`` earlier (step times are k * dt).
+    """
+    wind = calm
+    for gust in gusts:
+        if gust.t - TIME_TOL <= t < gust.t + gust.duration - TIME_TOL:
+            wind = gust.wind
+    return wind
 
 
 def drag_force(

@@ -154,6 +154,10 @@ class Vehicle:
         dx.extend(((cmd_forces[0] - f1) * k, (cmd_forces[1] - f2) * k, (cmd_forces[2] - f3) * k, (cmd_forces[3] - f4) * k))
         return dx
 
+    def ground_lift(self, thrust: float) -> float:
+        """Upward force [N] of motors and air on the vehicle resting on the floor (the wind's drag only)."""
+        return thrust + drag_force(0.0, 0.0, 0.0, self._drag, self._wind)[2]
+
     def step(self, motor_commands: Sequence[float], mass: float) -> None:
         """Advance one ``dt`` with the four motor commands (0..65535) held.
 
@@ -168,8 +172,7 @@ class Vehicle:
             x = x[:13] + cmd
         if self.on_ground:
             thrust = x[13] + x[14] + x[15] + x[16]
-            lift_z = drag_force(0.0, 0.0, 0.0, self._drag, self._wind)[2]
-            if thrust + lift_z <= mass * self._gravity:
+            if self.ground_lift(thrust) <= mass * self._gravity:
                 # The ground holds it: only the motors move.
                 a = self._lag_factor
                 self._x = x[:13] + [c + (f - c) * a for f, c in zip(x[13:], cmd)]

@@ -12,7 +12,8 @@ import threading
 from typing import Sequence
 
 from cfknode.sim_backend.crazyflie import SimCrazyflie
-from cfknode.sim_backend.downwash import DownwashVehicle, downwash_forces
+from cfknode.sim_backend.aero_vehicle import AeroVehicle
+from cfknode.sim_backend.downwash import DownwashVehicle, WakeLaw, downwash_forces, measured_wake
 from cfknode.sim_backend.settings import DownwashConfig
 from cfknode.sim_backend.vehicle import Vehicle
 
@@ -31,8 +32,8 @@ class SimWorld:
         self.sims = tuple(sims)
         self.dt = sims[0].dt
         self.lock = threading.RLock()
-        self._downwash = downwash if downwash is not None and downwash.enabled else None
-        if self._downwash is not None:
+        self._downwash = _wake_law(self.sims, downwash)
+        if self._downwash is not None and not all(isinstance(s.vehicle, AeroVehicle) for s in self.sims):
             for sim in self.sims:
                 if type(sim.vehicle) is not Vehicle:
                     raise ValueError("downwash needs the plain simulated vehicle (it cannot combine with "
@@ -55,6 +56,22 @@ class SimWorld:
                 t_next = (sims[0].steps + 1) * dt
                 for sim in sims:
                     sim.step_to(t_next)
+
+
+def _wake_law(sims: Sequence[SimCrazyflie], downwash: DownwashConfig | None) -> DownwashConfig | WakeLaw | None:
+    """What pushes a drone below another: ``sim.downwash``'s model on the ideal plant (when enabled),
+    the measured wake on the realistic one (unless its scale is 0), else nothing."""
+    kinds = {s.sim_config.aero for s in sims}
+    if len(kinds) != 1:
+        raise ValueError(f"all simulators of a world must share sim.aero, got {sorted(kinds)}")
+    enabled = downwash is not None and downwash.enabled
+    if kinds == {"ideal"}:
+        return downwash if enabled else None
+    if enabled:
+        raise ValueError("sim.downwash is the ideal plant's wake; the realistic plant has its own "
+                         "(sim.aero_terms.downwash)")
+    terms = sims[0].sim_config.aero_terms
+    return measured_wake(terms) if terms.downwash > 0.0 else None
 
 
 __all__ = ["SimWorld"]

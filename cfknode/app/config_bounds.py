@@ -146,6 +146,15 @@ BOUNDS: dict[str, Bound] = {
     "sim.downwash.peak_fraction": _b(0, 1),
     "sim.downwash.height": _b(0, 5, "m", open_low=True),
     "sim.downwash.radius": _b(0, 1, "m", open_low=True),
+    # The realistic plant's terms (0: off; 1x the documented values is the default, docs/hardware.md#simulator).
+    "sim.aero_terms.rotor_drag": _b(0, 2, "m/s^2 per m/s"),
+    "sim.aero_terms.inflow": _b(0, 2, "m/s^2 per m/s"),
+    "sim.aero_terms.ground_effect": _b(0, 3),
+    "sim.aero_terms.downwash": _b(0, 3),
+    "sim.aero_terms.downwash_width": _b(0.01, 0.5, "m"),
+    "sim.aero_terms.fast_rms": _b(0, 2, "m/s^2"),
+    "sim.aero_terms.fast_rms_per_speed2": _b(0, 1, "m/s^2 per (m/s)^2"),
+    "sim.aero_terms.fast_band_hz": _b(0.05, 100, "Hz"),
     "estimator.command_delay": _b(0, 0.3, "s"),
     "estimator.attitude_lag": _b(0, 1, "s"),
     "fleet.size": _b(0, 16, "drones"),
@@ -365,9 +374,28 @@ def rollback_order(cfg: Config) -> str | None:
     return None
 
 
+def fast_force_band(cfg: Config) -> str | None:
+    """The fast force's band must be a band, and its upper edge well inside the plant's step rate."""
+    (low, high), dt = cfg.sim.aero_terms.fast_band_hz, cfg.sim.dt
+    if low >= high:
+        return f"sim.aero_terms.fast_band_hz = [{low:g}, {high:g}] Hz must have its low edge below its high edge"
+    if high > 0.25 / dt:
+        return (f"sim.aero_terms.fast_band_hz high edge {high:g} Hz must be at most a quarter of the plant's "
+                f"step rate (0.25 / sim.dt = {0.25 / dt:g} Hz)")
+    return None
+
+
+def one_wake(cfg: Config) -> str | None:
+    """The realistic plant brings its own, measured wake: two wake models at once would add up."""
+    if cfg.sim.aero == "realistic" and cfg.sim.downwash.enabled:
+        return ("sim.downwash.enabled is the ideal plant's wake; with sim.aero = realistic the wake is "
+                "sim.aero_terms.downwash (0 turns it off)")
+    return None
+
+
 CROSS_CHECKS: tuple[Callable[[Config], str | None], ...] = (
     hover_authority, battery_order, radio_rate, mpc_timing, solve_deadline, tilt_order, fence_order,
-    touchdown_below_flight, rollback_order,
+    touchdown_below_flight, rollback_order, fast_force_band, one_wake,
 )
 
 
