@@ -122,6 +122,10 @@ class Supervisor(OperatorRequests, SlowInputs):
         blind_az = self.blind_setpoint.thrust * vehicle.newton_per_cmd / vehicle.mass - vehicle.gravity
         self.blind_acc = np.array([0.0, 0.0, blind_az])
         self.blind_acc.flags.writeable = False  # shared with the estimator and observers every blind tick
+        # A radio that checks its setpoint's age holds on this same blind setpoint if the loop stalls.
+        guard = getattr(radio, "set_stale_hold", None)
+        if guard is not None:
+            guard(self.blind_setpoint, self.loop_stalled)
         self._cos_tilt_max = math.cos(math.radians(config.max_tilt_deg))
 
         self._state = State.IDLE

@@ -22,6 +22,7 @@ class OperatorRequests:
     _errors: dict[Any, PartError]
     _now: float
     _log: Any
+    _radio: Any
     _state: State
     _landing_mode: str
     _landing: Any
@@ -55,6 +56,22 @@ class OperatorRequests:
             first = self._interrupts[0]
             said = f"second {text}" if first == signal_name else f"{text} after {signal_stop_text(first)}"
             self._requests.append((_STOP, f"{code}_stop", said, ""))
+        # A stalled loop would take neither at its next tick: the radio hears of it at once.
+        notify = getattr(self._radio, "stop_signal", None)
+        if notify is not None:
+            notify(len(self._interrupts))
+
+    def loop_stalled(self, phase: str, age_s: float) -> None:
+        """The radio's TX thread found the loop's setpoint stale in flight: "hold" (it flies a
+        level, descending hold) or "stop" (it stopped the motors). Logged and acted on at the
+        loop's next tick, if it comes: a landing, or a stop."""
+        if phase == "hold":
+            self._requests.append((_LAND, "loop_stall", f"the flight loop stalled (no setpoint for {age_s * 1e3:.0f} ms)",
+                                   "the radio flew a level, descending hold meanwhile"))
+        elif phase == "stop":
+            self._requests.append((_STOP, "loop_stall_stop",
+                                   f"the flight loop stalled: the radio stopped the motors ({age_s:.2f} s without a "
+                                   "setpoint, or a second stop signal during the stall)", ""))
 
     def internal_error(self, part: str, exc: BaseException, action: str = ERROR_LAND) -> PartError | None:
         """An exception from ``part`` of the flight, at the latest tick's time.

@@ -118,7 +118,13 @@ class DroneActor:
         self._inbox.append(("stop", (reason, cause)))
 
     def interrupt(self, signal_name: str = "SIGINT") -> None:
-        self._inbox.append(("interrupt", (signal_name,)))
+        # Straight to the supervisor once it exists (its inbox is thread-safe): a stalled loop takes
+        # no inbox, and the supervisor passes the signal on to the radio, which acts during a stall.
+        sup = self._sup
+        if sup is not None:
+            sup.interrupt(signal_name)
+        else:
+            self._inbox.append(("interrupt", (signal_name,)))
 
     def hold(self, reason: str) -> None:
         """Hover where the drone is now (its own latest estimate), until a landing is requested."""
