@@ -64,6 +64,7 @@ from cfknode.safety.supervisor_types import (  # noqa: F401 (re-exported: the lo
     _FLYING,
     _STOP,
     _LAND,
+    _NOTE,
     ERROR_LAND,
     ERROR_STOP,
     ERROR_RECORD,
@@ -258,7 +259,11 @@ class Supervisor(OperatorRequests, SlowInputs):
         if slot is not None:
             self._poll(now, slot)
         while self._requests:  # appended by other threads; deque ends are atomic
-            self._escalate(now, *self._requests.popleft())
+            kind, cause, text, note = self._requests.popleft()
+            if kind == _NOTE:
+                self._event(now, "warning", text, source=cause)
+            else:
+                self._escalate(now, kind, cause, text, note)
         state = self._state
         if state in _FLYING:
             return self._fly(now, est, ref)

@@ -12,7 +12,7 @@ from typing import Any, Iterator
 import pytest
 
 from cfknode.app.backends.radio import HardwareRadio
-from cfknode.app.backends.stale_setpoint import FRESH, HOLD, STOP, ZERO, StaleGuard, StalePolicy, stale_phase
+from cfknode.app.backends.stale_setpoint import FRESH, HOLD, RESUMED, STOP, ZERO, StaleGuard, StalePolicy, stale_phase
 from cfknode.app.config import ConfigError, load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.safety.signal_relay import relay_signals
@@ -98,7 +98,7 @@ def test_a_short_stall_holds_then_flies_on() -> None:
     guard.stamp((1.0, 1.0, 0.0, 39000))
     assert _slots(guard, clock, 1) == [(1.0, 1.0, 0.0, 39000)]
     assert guard.phase == FRESH and not guard.stopped
-    assert heard == [(HOLD, 5 * SLOT)]
+    assert heard == [(HOLD, 5 * SLOT), (RESUMED, 6 * SLOT)]  # and how long the loop was gone
 
 
 def test_the_hold_never_asks_for_more_thrust_than_the_loop_did() -> None:

@@ -12,8 +12,9 @@ TX thread asks ``StaleGuard.outgoing`` what to send at every slot. By the setpoi
   is latched: a loop that comes back later does not restart the motors.
 
 A setpoint with zero thrust is never replaced: the motors are already off, and a landed drone
-whose loop has ended (the fleet's others still flying) must keep its heartbeat. Each change
-of phase is reported once to the listener (the supervisor), from the thread that noticed it.
+whose loop has ended (the fleet's others still flying) must keep its heartbeat. The listener
+(the supervisor) hears of each hold and stop with the setpoint's age, and of a loop that came
+back during a hold with how long it was gone, from the thread that noticed it.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ Setpoint = tuple[float, float, float, int]  # roll deg, pitch deg, yaw rate deg/
 ZERO: Setpoint = (0.0, 0.0, 0.0, 0)
 
 FRESH, HOLD, STOP = "fresh", "hold", "stop"
+RESUMED = "resumed"  # told, never a phase: the loop came back during a hold, with the stall's length
 STOP_SIGNALS_DURING_STALL = 2  # as in flight: the first stop signal lands (the hold), the second stops
 
 
@@ -111,13 +113,17 @@ class StaleGuard:
         slot = self._slot
         if slot is None:
             return None
-        self._slots = self._slots + 1 if slot is self._seen else 0
+        previous = self._seen
+        self._slots = self._slots + 1 if slot is previous else 0
         self._seen = slot
         sp, stamped = slot
         age = self._clock() - stamped
         phase = STOP if self._phase == STOP else (stale_phase(age, self._slots, self.policy) if sp[3] > 0 else FRESH)
         if phase != self._phase:
+            was = self._phase
             self._change(phase, age)
+            if was == HOLD and self._phase == FRESH and previous is not None:
+                self._tell(RESUMED, stamped - previous[1])  # how long the loop was gone
         if self._phase == STOP:
             return ZERO
         if self._phase == HOLD:
@@ -140,12 +146,16 @@ class StaleGuard:
                 self.holds += 1
             elif phase == STOP:
                 self.stops += 1
+        if phase != FRESH:
+            self._tell(phase, age)
+
+    def _tell(self, what: str, age: float) -> None:
         listener = self._listener
-        if listener is not None and phase != FRESH:
+        if listener is not None:
             try:
-                listener(phase, age)
+                listener(what, age)
             except Exception:  # noqa: BLE001 - the radio must go on sending whatever the listener does
                 pass
 
 
-__all__ = ["FRESH", "HOLD", "STOP", "Setpoint", "StaleGuard", "StalePolicy", "ZERO", "hold_setpoint", "stale_phase"]
+__all__ = ["FRESH", "HOLD", "RESUMED", "STOP", "Setpoint", "StaleGuard", "StalePolicy", "ZERO", "hold_setpoint", "stale_phase"]
