@@ -3,11 +3,10 @@
 
 from __future__ import annotations
 
-import itertools
 import os
 import signal
 import threading
-from typing import Any, Iterator
+from typing import Any
 
 import pytest
 
@@ -16,7 +15,7 @@ from cfknode.app.backends.stale_setpoint import FRESH, HOLD, RESUMED, STOP, ZERO
 from cfknode.app.config import ConfigError, load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.safety.signal_relay import relay_signals
-from fakes import RecordingFirmware, serve_sim
+from test_radio import FakeSim, sim_uri, wait_for  # noqa: F401 (sim_uri: the fixture, used by name)
 
 FLY = (3.0, -2.0, 10.0, 40000)
 HOLD_THRUST = 36000
@@ -162,39 +161,6 @@ def test_config_keys_and_their_order() -> None:
 
 # --- the radio: what reaches the firmware when nobody stamps -------------------------------------
 
-_uris = itertools.count(9400)
-
-
-class FakeSim:
-    dt = 0.002
-    battery_voltage = 4.0
-
-    def __init__(self) -> None:
-        self.t = 0.0
-        self.lock = threading.RLock()
-        self.firmware = RecordingFirmware()
-
-    def add_step_observer(self, cb: Any) -> None:
-        pass
-
-    def step_to(self, t_target: float) -> None:
-        self.t = max(self.t, t_target)
-
-
-@pytest.fixture
-def sim_uri() -> Iterator[tuple[FakeSim, str]]:
-    yield from serve_sim(FakeSim(), next(_uris))
-
-
-def _wait(predicate: Any, timeout: float = 20.0) -> bool:
-    event = threading.Event()
-    for _ in range(int(timeout / 0.01)):
-        if predicate():
-            return True
-        event.wait(0.01)
-    return predicate()
-
-
 def test_a_threaded_radio_holds_then_stops_and_ends_the_heartbeat(sim_uri: tuple[FakeSim, str], tmp_path: Any) -> None:
     sim, uri = sim_uri
     radio = HardwareRadio(uri, params={}, heartbeat_hz=50.0, lockstep=False, rw_cache=str(tmp_path),
@@ -204,8 +170,8 @@ def test_a_threaded_radio_holds_then_stops_and_ends_the_heartbeat(sim_uri: tuple
     radio.connect(timeout=5.0)
     try:
         radio.set_setpoint(AttitudeSetpoint(3.0, -2.0, 10.0, 40000))  # then the loop stalls
-        assert _wait(lambda: radio.stats().stale_stops == 1)
-        assert _wait(lambda: sum(1 for c in sim.firmware.named("rpyt") if c[-1] == 0) >= 5)
+        assert wait_for(lambda: radio.stats().stale_stops == 1, timeout=20.0)
+        assert wait_for(lambda: sum(1 for c in sim.firmware.named("rpyt") if c[-1] == 0) >= 5, timeout=20.0)
     finally:
         radio.shutdown()
     calls = sim.firmware.calls
