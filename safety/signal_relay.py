@@ -62,12 +62,14 @@ def relay_signals(target: Interruptible, signals: tuple[signal.Signals, ...]) ->
             signal.signal(sig, _ignore)
         yield True
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        # The wakeup fd first: a signal between the two steps is then never counted twice (by
+        # the relay and by a previous handler that acts on it too).
         try:
             signal.set_wakeup_fd(old_fd)
         except (ValueError, OSError):  # the one before is gone (closed out of order): none then
             signal.set_wakeup_fd(-1)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         _write_quit(write_fd)
         relay.join(timeout=5.0)
         os.close(write_fd)
