@@ -3,12 +3,20 @@ the radio at once, and acts on what the radio reports (driven tick by tick with 
 
 from __future__ import annotations
 
+import asyncio
+import os
+import signal
+import threading
+import time
 from collections import deque
+from types import SimpleNamespace
 
+from cfknode.app import fleet
 from cfknode.app.drone_actor import DroneActor
 from cfknode.app.mission import build_supervisor
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.safety.supervisor import State
+from test_fleet_signals import _coordinator, _Sup
 from test_safety_supervisor import FakeRadio, Rig
 
 
@@ -78,14 +86,6 @@ def test_the_radio_stopping_the_motors_ends_in_emergency():
     assert rig.radio.setpoints[-1].thrust == 0
 
 
-class _Sup:
-    def __init__(self) -> None:
-        self.signals: list[str] = []
-
-    def interrupt(self, name: str) -> None:
-        self.signals.append(name)
-
-
 def test_a_ray_actor_passes_a_signal_to_its_supervisor_without_waiting_for_a_tick():
     actor = object.__new__(DroneActor)  # the routing only: no Ray runtime
     actor._inbox, actor._sup = deque(), None
@@ -94,3 +94,36 @@ def test_a_ray_actor_passes_a_signal_to_its_supervisor_without_waiting_for_a_tic
     actor._sup = sup = _Sup()
     actor.interrupt("SIGHUP")
     assert sup.signals == ["SIGHUP"] and len(actor._inbox) == 1
+
+
+def test_a_fleet_gets_a_stop_signal_while_its_loops_thread_is_blocked(tmp_path, monkeypatch):
+    coord, sups, _ = _coordinator(tmp_path)
+    blocked = threading.Event()
+    seen_while_blocked: list[bool] = []
+    for sup in sups:
+        def record(name: str, sup=sup) -> None:
+            seen_while_blocked.append(blocked.is_set())
+            sup.signals.append(name)
+        sup.interrupt = record
+
+    async def stuck_loop(p: SimpleNamespace) -> str:
+        await asyncio.sleep(0)
+        if p.name == "cf1":  # blocks the event loop's thread, so every drone's loop with it
+            blocked.set()
+            threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGTERM)).start()
+            deadline = time.monotonic() + 60.0
+            while len(seen_while_blocked) < 2 and time.monotonic() < deadline:
+                time.sleep(0.01)  # no await: nothing else on this thread runs meanwhile
+            blocked.clear()
+        return p.name
+
+    monkeypatch.setattr(fleet, "fly", stuck_loop)
+    previous = signal.signal(signal.SIGTERM, lambda *a: None)  # one that came too late must not end pytest
+    try:
+        drones = [SimpleNamespace(clock=SimpleNamespace()) for _ in sups]
+        parts = [SimpleNamespace(name="cf1"), SimpleNamespace(name="cf2")]
+        assert asyncio.run(fleet._gather(drones, parts, coord)) == ["cf1", "cf2"]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert [s.signals for s in sups] == [["SIGTERM"], ["SIGTERM"]]
+    assert seen_while_blocked == [True, True]
