@@ -28,13 +28,19 @@ BLOCK_AT = 2.0  # s of flight time: hovering at 1 m
 BLOCK_S = 4.0
 LEVEL_WITHIN = 0.2  # s after the block starts
 FIRMWARE_LOCK_S = 2.0  # the commander watchdog's lock time
+FLYING = ("TRACK", "LAND")  # hovering, or (on a machine too busy to keep up) landing from there
 
-# The geometric controller and no overrun landing: on a loaded machine a slow MPC would land the
-# flight before the block for its own reasons; this is about the radio, not the controller.
+# The geometric controller and the supervisor's other watchdogs at their most patient: on a loaded
+# machine a slow MPC, a late mocap frame or a missed deadline would land the flight before the
+# block for reasons of their own; this is about the radio, not them.
 HOVER = {
     "sim.realtime": True,
     "controller.kind": "geometric",
     "safety.overrun_ticks": 10_000,
+    "safety.mocap_hold_s": 1.0,
+    "safety.mocap_stop_s": 5.0,
+    "safety.link_silence_s": 2.0,
+    "safety.tracking_error_s": 5.0,
     "trajectory.kind": "hover",
     "trajectory.height": 1.0,
     "trajectory.takeoff_duration": 1.0,
@@ -123,9 +129,9 @@ def test_a_stalled_loop_holds_level_and_descending_then_stops_the_motors(tmp_pat
     blocker = Blocker(uri="")
     result, hold_thrust = _fly(tmp_path, blocker)
     t0 = blocker.t0
-    assert blocker.state_at_block == "TRACK", result.record.events
+    assert blocker.state_at_block in FLYING, result.record.events
     at_block = next(s for s in blocker.samples if s.t >= t0)
-    assert at_block.p[2] > 0.8  # hovering when the loop stopped
+    assert at_block.p[2] > 0.6, result.record.events  # in the air when the loop stopped
     t_off = _motors_off_at(blocker)
     assert t_off - t0 <= FIRMWARE_LOCK_S
     held = [s for s in blocker.samples if t0 + LEVEL_WITHIN <= s.t < t_off]
@@ -151,7 +157,7 @@ def test_a_signal_during_the_block_still_stops_the_vehicle(tmp_path, no_sigterm_
     blocker = Blocker(uri="", signals=2)
     result, _ = _fly(tmp_path, blocker, **{"radio.stale_stop_s": 1.9})
     t0 = blocker.t0
-    assert blocker.state_at_block == "TRACK", result.record.events
+    assert blocker.state_at_block in FLYING, result.record.events
     t_off = _motors_off_at(blocker)
     assert blocker.t_signal <= t_off < t0 + 1.5, (t0, blocker.t_signal, t_off)
     assert all(s.motors == (0, 0, 0, 0) for s in blocker.samples if s.t >= t_off)
