@@ -11,6 +11,7 @@ also decides what each tick flies (``plan``) and when the flight is over (``fini
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -49,6 +50,7 @@ class FlightParts:
     observers: list[TickObserver] = field(default_factory=list)
     estop: EstopMailbox | None = None  # where `cfknode estop` reaches this flight
     imu: ImuSource | None = None  # the vehicle's accelerometer: its newest sample goes into each tick's estimate
+    signals: bool = True  # route stop signals to this flight's supervisor (a fleet routes them itself, to all)
 
 
 @dataclass
@@ -106,8 +108,8 @@ class FlightRecord:
 async def fly(parts: FlightParts) -> FlightRecord:
     """Fly the trajectory until the supervisor has cut the motors; returns the per-tick record.
 
-    Stop signals go to the supervisor while the flight runs: the first SIGINT, SIGTERM or
-    SIGHUP lands, the second stops the motors. The e-stop mailbox is open for ``cfknode estop``
+    Stop signals go to the supervisor while the flight runs (from a relay thread, so also while
+    this thread is stuck): the first SIGINT, SIGTERM or SIGHUP lands, the second stops the motors. The e-stop mailbox is open for ``cfknode estop``
     for the same span.
 
     No exception from a part ends the loop: the supervisor logs it once, with its traceback
@@ -145,7 +147,8 @@ async def fly(parts: FlightParts) -> FlightRecord:
     logs_imu = imu is not None  # a flight with an IMU logs what each tick saw of it, NaN for nothing yet
     held: RefSamples | None = None  # the hold reference once the trajectory has raised
     try:
-        with stop_signal_handler(sup), estop_watch(sup, parts.estop):
+        signals = stop_signal_handler(sup) if parts.signals else contextlib.nullcontext(False)
+        with signals, estop_watch(sup, parts.estop):
             while not sup.finished:
                 t_tick = k * period
                 try:

@@ -1,9 +1,10 @@
 """Operator controls that reach a flight from outside the loop: stop signals and ``cfknode estop``.
 
 - SIGINT (Ctrl-C), SIGTERM (``kill``, a service manager) and SIGHUP (the terminal closed):
-  installed with ``loop.add_signal_handler`` on the flight's own event loop, so the handler
-  runs between ticks as an ordinary callback (never inside a tick), and the previous handlers
-  are put back when the flight ends. The first signal lands, the second stops the motors.
+  received by a relay thread (signal_relay.py), which only queues a request for the
+  supervisor, so it acts at the next tick, and reaches the radio at once if the loop's thread
+  is stuck. The previous handlers are put back when the flight ends. The first signal lands,
+  the second stops the motors.
 - The e-stop mailbox (``estop_mailbox``): the flight announces itself in a private directory
   and ``cfknode estop`` leaves a request file addressed to that one flight. A small task on
   the flight's event loop looks for it 20 times a second, between ticks (a file-system call
@@ -17,9 +18,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
-from typing import Any, Callable, Iterator, Protocol
+from typing import Iterator, Protocol
 
 from cfknode.safety.estop_mailbox import EstopMailbox, describe_error, mailbox_dir
+from cfknode.safety.signal_relay import relay_signals
 
 __all__ = ["STOP_SIGNALS", "EstopMailbox", "estop_watch", "mailbox_dir", "stop_signal_handler"]
 
@@ -44,34 +46,14 @@ class Stoppable(Protocol):
 
 @contextlib.contextmanager
 def stop_signal_handler(target: Interruptible, signals: tuple[signal.Signals, ...] = STOP_SIGNALS) -> Iterator[bool]:
-    """Route ``signals`` to ``target.interrupt(name)`` on the running event loop while the block runs.
+    """Route ``signals`` to ``target.interrupt(name)`` while the block runs, from a relay thread
+    (signal_relay.py), so a signal reaches ``target`` even while the loop's thread is blocked.
 
     Yields whether the handlers are installed (only the main thread may set signal handlers;
     elsewhere the signals keep their previous meaning). The previous handlers are restored on exit.
     """
-    loop = asyncio.get_running_loop()
-    previous: dict[signal.Signals, Callable[..., Any] | int | None] = {}
-    try:
-        for sig in signals:
-            handler = signal.getsignal(sig)
-            loop.add_signal_handler(sig, target.interrupt, sig.name)
-            previous[sig] = handler  # only once added: those are the ones to put back
-    except (RuntimeError, ValueError, NotImplementedError):
-        _restore(loop, previous)
-        yield False
-        return
-    try:
-        yield True
-    finally:
-        _restore(loop, previous)
-
-
-def _restore(loop: asyncio.AbstractEventLoop, previous: dict[signal.Signals, Any]) -> None:
-    for sig, handler in previous.items():
-        loop.remove_signal_handler(sig)  # leaves the default disposition: put the previous one back
-        if handler is not None:
-            signal.signal(sig, handler)
-
+    with relay_signals(target, signals) as installed:
+        yield installed
 
 
 @contextlib.contextmanager

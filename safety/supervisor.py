@@ -64,6 +64,7 @@ from cfknode.safety.supervisor_types import (  # noqa: F401 (re-exported: the lo
     _FLYING,
     _STOP,
     _LAND,
+    _NOTE,
     ERROR_LAND,
     ERROR_STOP,
     ERROR_RECORD,
@@ -122,6 +123,10 @@ class Supervisor(OperatorRequests, SlowInputs):
         blind_az = self.blind_setpoint.thrust * vehicle.newton_per_cmd / vehicle.mass - vehicle.gravity
         self.blind_acc = np.array([0.0, 0.0, blind_az])
         self.blind_acc.flags.writeable = False  # shared with the estimator and observers every blind tick
+        # A radio that checks its setpoint's age holds on this same blind setpoint if the loop stalls.
+        guard = getattr(radio, "set_stale_hold", None)
+        if guard is not None:
+            guard(self.blind_setpoint, self.loop_stalled)
         self._cos_tilt_max = math.cos(math.radians(config.max_tilt_deg))
 
         self._state = State.IDLE
@@ -254,7 +259,11 @@ class Supervisor(OperatorRequests, SlowInputs):
         if slot is not None:
             self._poll(now, slot)
         while self._requests:  # appended by other threads; deque ends are atomic
-            self._escalate(now, *self._requests.popleft())
+            kind, cause, text, note = self._requests.popleft()
+            if kind == _NOTE:
+                self._event(now, "warning", text, source=cause)
+            else:
+                self._escalate(now, kind, cause, text, note)
         state = self._state
         if state in _FLYING:
             return self._fly(now, est, ref)

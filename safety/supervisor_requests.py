@@ -11,7 +11,11 @@ from collections import deque
 from typing import Any
 
 from cfknode.safety.part_errors import PartError, describe_error, signal_stop_text
-from cfknode.safety.supervisor_types import _LAND, _STOP, ERROR_LAND, State
+from cfknode.safety.supervisor_types import _LAND, _NOTE, _STOP, ERROR_LAND, State
+
+# A loop gone this long (the firmware's own level-out time, docs/hardware.md#commander-watchdog)
+# has flown blind too long to carry on: the flight lands once it is back.
+STALL_LAND_S = 0.5
 
 
 class OperatorRequests:
@@ -22,6 +26,7 @@ class OperatorRequests:
     _errors: dict[Any, PartError]
     _now: float
     _log: Any
+    _radio: Any
     _state: State
     _landing_mode: str
     _landing: Any
@@ -55,6 +60,25 @@ class OperatorRequests:
             first = self._interrupts[0]
             said = f"second {text}" if first == signal_name else f"{text} after {signal_stop_text(first)}"
             self._requests.append((_STOP, f"{code}_stop", said, ""))
+        # A stalled loop would take neither at its next tick: the radio hears of it at once.
+        notify = getattr(self._radio, "stop_signal", None)
+        if notify is not None:
+            notify(len(self._interrupts))
+
+    def loop_stalled(self, phase: str, age_s: float) -> None:
+        """From the radio's TX thread, about a loop that stopped sending setpoints in flight:
+        "hold" (the radio flies a level, descending hold: logged), "resumed" (the loop came back
+        after ``age_s``: the flight lands if that was ``STALL_LAND_S`` or more), "stop" (the radio
+        stopped the motors). All take effect at the loop's next tick, if it comes."""
+        if phase == "hold":
+            self._requests.append((_NOTE, "radio", f"the flight loop stalled (no setpoint for {age_s * 1e3:.0f} ms): "
+                                   "the radio flies a level, descending hold until it is back", ""))
+        elif phase == "resumed" and age_s >= STALL_LAND_S:
+            self._requests.append((_LAND, "loop_stall", f"the flight loop stalled for {age_s:.2f} s", ""))
+        elif phase == "stop":
+            self._requests.append((_STOP, "loop_stall_stop",
+                                   f"the flight loop stalled: the radio stopped the motors ({age_s:.2f} s without a "
+                                   "setpoint, or a second stop signal during the stall)", ""))
 
     def internal_error(self, part: str, exc: BaseException, action: str = ERROR_LAND) -> PartError | None:
         """An exception from ``part`` of the flight, at the latest tick's time.

@@ -42,6 +42,7 @@ class State(str, Enum):
 
 _FLYING = frozenset({State.TAKEOFF, State.TRACK, State.LAND})
 _STOP, _LAND = "stop", "land"
+_NOTE = "note"  # an operator-request queue entry that is only logged
 # What the loop asks of ``internal_error``: land, stop the motors, or only record it.
 ERROR_LAND, ERROR_STOP, ERROR_RECORD = _LAND, _STOP, "record"
 

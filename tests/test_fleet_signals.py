@@ -16,7 +16,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from cfknode.flight.controller import TickInfo
-from cfknode.safety.operator import stop_signal_handler
 from cfknode.safety.process_signals import ProcessSignals
 from fakes import finish_json, wait_for_log_events
 
@@ -87,19 +86,18 @@ def test_a_stop_signal_reaches_every_supervisor_and_is_logged_at_the_next_tick(t
 
 
 def test_the_fleet_loop_routes_every_stop_signal_to_all_and_gives_them_back(tmp_path, monkeypatch):
-    # The flight loops replaced by ones that take the stop signals for their own supervisor,
-    # as flight.loop.fly does: the fleet's routing must win while any loop runs, also after
+    # The flight loops replaced by ones that, as flight.loop.fly with FlightParts.signals off,
+    # leave the stop signals to the fleet: its routing holds while any loop runs, also after
     # one has ended, and ProcessSignals must have them again afterwards.
     coord, sups, _ = _coordinator(tmp_path)
     ended: list[str] = []
 
     async def loop_of(p: SimpleNamespace) -> str:
-        with stop_signal_handler(p.supervisor):
-            for k in range(p.ticks):
-                await asyncio.sleep(0.01)
-                if k in p.send:
-                    assert p.send[k][0] <= set(ended)  # the loops that must have ended by now
-                    os.kill(os.getpid(), p.send[k][1])
+        for k in range(p.ticks):
+            await asyncio.sleep(0.01)
+            if k in p.send:
+                assert p.send[k][0] <= set(ended)  # the loops that must have ended by now
+                os.kill(os.getpid(), p.send[k][1])
         ended.append(p.name)
         return p.name
 

@@ -75,6 +75,8 @@ class RadioConfig:
     uri: str
     tx_rate_hz: float
     imu_log: bool = True  # the accelerometer log block (docs/hardware.md#imu-log)
+    stale_hold_slots: int = 4  # TX slots resending one setpoint before the radio holds level, descending
+    stale_stop_s: float = 1.0  # s: a setpoint this old (and held) makes the radio stop the motors
 
 
 @dataclass(frozen=True)
@@ -195,6 +197,8 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.fixed_latency_s", lambda v: 0 <= v <= 60, "in [0, 60] s"),
     ("online.latency_quantum_s", lambda v: 0 <= v <= 1, "in [0, 1] s"),
     ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
+    ("radio.stale_hold_slots", lambda v: v >= 1, ">= 1"),
+    ("radio.stale_stop_s", lambda v: 0 < v < 2, "in (0, 2) s (the firmware locks at 2 s)"),
     ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
     ("safety.fence_margin", lambda v: v >= 0, ">= 0"),
     ("safety.fence_stop_distance", lambda v: v > 0, "> 0"),

@@ -205,6 +205,8 @@ BOUNDS: dict[str, Bound] = {
     "online.inject.nan_at_round": _ROUND,
     # Radio and display.
     "radio.tx_rate_hz": _b(20, 500, "Hz"),  # slower and the firmware's setpoint watchdog trips
+    "radio.stale_hold_slots": _b(1, 50, "slots"),
+    "radio.stale_stop_s": _b(0.1, 2, "s", open_high=True),  # the firmware's commander watchdog locks at 2 s
     "dashboard.refresh_hz": _b(0.5, 30, "Hz"),
     # Safety supervisor.
     "safety.fence_min": _b(-50, 50, "m"),
@@ -322,6 +324,16 @@ def radio_rate(cfg: Config) -> str | None:
     return None
 
 
+def stale_order(cfg: Config) -> str | None:
+    """The radio's hold on a stale setpoint must begin before its stop."""
+    r = cfg.radio
+    hold_s = r.stale_hold_slots / r.tx_rate_hz
+    if hold_s >= r.stale_stop_s:
+        return (f"radio.stale_stop_s = {r.stale_stop_s:g} s must be longer than radio.stale_hold_slots / "
+                f"radio.tx_rate_hz = {hold_s:g} s")
+    return None
+
+
 def mpc_timing(cfg: Config) -> str | None:
     """Nodes no closer than a tick, and a horizon that sees the near future but not beyond reason."""
     c = cfg.controller
@@ -394,7 +406,7 @@ def one_wake(cfg: Config) -> str | None:
 
 
 CROSS_CHECKS: tuple[Callable[[Config], str | None], ...] = (
-    hover_authority, battery_order, radio_rate, mpc_timing, solve_deadline, tilt_order, fence_order,
+    hover_authority, battery_order, radio_rate, stale_order, mpc_timing, solve_deadline, tilt_order, fence_order,
     touchdown_below_flight, rollback_order, fast_force_band, one_wake,
 )
 

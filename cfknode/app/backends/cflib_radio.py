@@ -14,6 +14,11 @@ each new pose as an extpose. Two ways to drive it:
 (docs/hardware.md#emergency-stop) on the same schedule owner, when the firmware has the
 supervisor port (protocol >= 12).
 
+In threaded mode every setpoint is stamped when the loop hands it over, and the TX thread
+sends nothing stale (stale_setpoint.py): a loop that stops ticking gets a level, descending
+hold after a few slots, then zeros and no more heartbeats. The TX thread is that watchdog:
+it runs whatever the loop's thread is stuck in.
+
 ``imu_log=True`` also starts the accelerometer log block (imu_log.py): ``imu`` is then an
 ``ImuSource`` whose ``latest(now)`` the loop reads every tick.
 
@@ -33,6 +38,7 @@ import numpy as np
 from cflib.crazyflie import Crazyflie
 
 from cfknode.app.backends.imu_log import ImuLog, start_imu_log
+from cfknode.app.backends.stale_setpoint import StaleGuard, StalePolicy
 from cfknode.app.backends.tx_cadence import TIME_EPS, Cadence
 from cfknode.kernel.messages import first_line
 
@@ -59,6 +65,8 @@ class RadioStats:
     latency_ms: float | None = None  # cflib's ping round trip (p95), where the radio measures it
     imu_samples: int = 0  # accelerometer samples received (0 without the IMU block)
     imu_late: int = 0  # lockstep ticks that gave up waiting for an emitted accelerometer sample
+    stale_holds: int = 0  # times the loop's setpoint went stale in flight and the radio held level, descending
+    stale_stops: int = 0  # times (at most once) a stale setpoint made the radio stop the motors
 
 
 class CflibRadio:
@@ -76,13 +84,15 @@ class CflibRadio:
         advance: Callable[[float], None] | None = None,
         heartbeat_hz: float = 0.0,
         imu_log: bool = False,
+        stale: StalePolicy | None = None,
     ) -> None:
         """``clock`` is the flight clock (stats timestamps; lockstep shutdown timing).
         ``advance(t)`` steps a lockstep simulator to ``t`` so the shutdown zero stream spans
         simulated time; without it the zeros go out back to back. ``heartbeat_hz`` > 0 sends
         the emergency-stop-watchdog heartbeat where the firmware supports it (0 = never).
         ``imu_log`` starts the accelerometer log block at connect (a firmware without it: a
-        warning in ``imu_note``, and ``imu`` stays None)."""
+        warning in ``imu_note``, and ``imu`` stays None). ``stale``: when a setpoint counts as
+        stale in threaded mode (default: hold after 4 slots, stop after 1 s)."""
         if not tx_rate_hz > 0:
             raise ValueError(f"tx_rate_hz must be positive, got {tx_rate_hz}")
         if heartbeat_hz < 0:
@@ -96,8 +106,9 @@ class CflibRadio:
         self._clock = clock
         self._advance = advance
         self._cf: Crazyflie | None = None
-        # Latest-value slots, each replaced whole (an atomic store under the GIL).
-        self._setpoint: tuple[float, float, float, int] | None = None
+        # Latest-value slots, each replaced whole (an atomic store under the GIL). The setpoint's
+        # slot is stamped on the wall clock: its age is what the TX thread checks.
+        self._stale = StaleGuard(stale or StalePolicy(4, 1.0), time.monotonic)
         self._extpose: tuple[int, tuple[float, ...]] | None = None
         self._extpose_seq = 0
         self._extpose_sent_seq = 0
@@ -213,7 +224,16 @@ class CflibRadio:
         return imu.latest(now) if imu is not None else None
 
     def set_setpoint(self, sp: "AttitudeSetpoint") -> None:
-        self._setpoint = (sp.roll_deg, sp.pitch_deg, sp.yawrate_deg, int(sp.thrust))
+        self._stale.stamp((sp.roll_deg, sp.pitch_deg, sp.yawrate_deg, int(sp.thrust)))
+
+    def set_stale_hold(self, hold: "AttitudeSetpoint", listener: Callable[[str, float], None] | None = None) -> None:
+        """The thrust of the hold a stale setpoint is replaced by (the supervisor's blind setpoint),
+        and ``listener(phase, age_s)``, told from the TX thread when a stall reaches "hold" or "stop"."""
+        self._stale.set_hold(int(hold.thrust), listener)
+
+    def stop_signal(self, count: int) -> None:
+        """The flight's ``count``-th stop signal (any thread): during a stall the second stops the motors."""
+        self._stale.stop_signal(count)
 
     def set_extpose(self, position: np.ndarray, quaternion_wxyz: np.ndarray) -> None:
         """Queue a pose for the onboard estimator; cflib wants the quaternion as x, y, z, w."""
@@ -234,7 +254,7 @@ class CflibRadio:
 
     def _send_due(self, now: float) -> None:
         self._send_new_extpose(now)
-        setpoint = self._setpoint
+        setpoint = self._stale.latest  # lockstep: the loop sends in this very call, never stale
         if setpoint is not None and self._tx_cadence.due(now):
             self._send_setpoint(setpoint, now)
         if self._hb_enabled and self._hb_cadence.due(now):
@@ -299,10 +319,10 @@ class CflibRadio:
             self._send_new_extpose(self._clock())
             wall = time.monotonic()
             if tx.due(wall):
-                setpoint = self._setpoint
+                setpoint = self._stale.outgoing()
                 if setpoint is not None:
                     self._send_setpoint(setpoint, self._clock())
-            if hb.due(wall):
+            if hb.due(wall) and not self._stale.stopped:
                 self._send_heartbeat()
         self._hand_back()
 
@@ -378,6 +398,8 @@ class CflibRadio:
             heartbeats_sent=self._heartbeats_sent,
             imu_samples=imu.samples if imu is not None else 0,
             imu_late=imu.late if imu is not None else 0,
+            stale_holds=self._stale.holds,
+            stale_stops=self._stale.stops,
         )
 
 

@@ -29,6 +29,7 @@ from cfknode.kernel.link import LinkStatus
 from cfknode.safety.watchdogs import radio_link_status
 from cfknode.app.backends.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
 from cfknode.app.backends.sim_mocap import SimulatedMotionCaptureClient
+from cfknode.app.backends.stale_setpoint import StalePolicy
 from cfknode.mocap.motioncapture_source import (
     Connector,
     MocapError,
@@ -158,6 +159,7 @@ def connect_robot(cfg: Config, robot: Robot, mocap: MotioncaptureSource, *, cons
             telemetry_hz=hw.telemetry_hz,
             reboot_after_heartbeat=hw.reboot_after_heartbeat,
             imu_log=cfg.radio.imu_log,
+            stale=StalePolicy(cfg.radio.stale_hold_slots, cfg.radio.stale_stop_s),
         )
         radio.connect(hw.radio_connect_timeout)
         settle_until = time.monotonic() + hw.preflight_settle

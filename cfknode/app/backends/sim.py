@@ -14,6 +14,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from cfknode.app.backends.radio import CflibRadio
+from cfknode.app.backends.stale_setpoint import StalePolicy
 from cfknode.app.config import Config
 from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.kernel.clock import SimClock, WallClock
@@ -59,6 +60,7 @@ class SimulatorBackend:
             advance=sim.step_to if clock.lockstep else None,
             rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
             imu_log=cfg.radio.imu_log,
+            stale=stale_policy(cfg),
         )
         stepper = None
         try:
@@ -96,6 +98,11 @@ class SimulatorBackend:
                 "vehicle_after_shutdown": vehicle_after(self.sim)}
 
 
+def stale_policy(cfg: Config) -> StalePolicy:
+    """When the radio takes a setpoint for stale (threaded radios: the loop stalled)."""
+    return StalePolicy(cfg.radio.stale_hold_slots, cfg.radio.stale_stop_s)
+
+
 def vehicle_after(sim: SimCrazyflie) -> dict[str, Any]:
     """Where the simulated drone ended and whether its motors run (after the hand-back)."""
     return {
@@ -116,4 +123,4 @@ def firmware_after_handback(sim: SimCrazyflie, lockstep: bool) -> str:
     return sim.firmware.supervisor_state
 
 
-__all__ = ["SimulatorBackend", "firmware_after_handback", "vehicle_after"]
+__all__ = ["SimulatorBackend", "firmware_after_handback", "stale_policy", "vehicle_after"]

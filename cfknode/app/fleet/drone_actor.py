@@ -5,8 +5,10 @@ so it loads without Ray). The actor flies the drone as a single flight (``missio
 its own simulator in lockstep, estimator, ``Controller``, supervisor and MCAP log on this node),
 with the fleet's placed reference for this drone. The control loop never waits for the driver:
 the driver's requests (land, hold, stop) are queued and applied by a tick observer on the
-loop's own thread at the next tick, and ``status()`` returns the latest tick's snapshot. It is
-a threaded actor, so these calls are served while ``fly()`` runs.
+loop's own thread at the next tick, and ``status()`` returns the latest tick's snapshot. A stop
+signal goes straight to the supervisor (its queue is thread-safe), which passes it on to the
+radio at once, so it acts while the loop is stuck. It is a threaded actor, so these calls are
+served while ``fly()`` runs.
 
 Restart: Ray re-runs ``__init__`` with the same ``DroneSpec`` (so the model file and the
 config are the ones the drone was given). A restarted actor never flies again and never
@@ -118,7 +120,13 @@ class DroneActor:
         self._inbox.append(("stop", (reason, cause)))
 
     def interrupt(self, signal_name: str = "SIGINT") -> None:
-        self._inbox.append(("interrupt", (signal_name,)))
+        # Straight to the supervisor once it exists (its inbox is thread-safe): a stalled loop takes
+        # no inbox, and the supervisor passes the signal on to the radio, which acts during a stall.
+        sup = self._sup
+        if sup is not None:
+            sup.interrupt(signal_name)
+        else:
+            self._inbox.append(("interrupt", (signal_name,)))
 
     def hold(self, reason: str, to: list[float] | None = None, move_s: float = 0.0) -> None:
         """Hover where the drone is now (its own latest estimate), gliding to ``to`` over ``move_s``

@@ -28,7 +28,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import re
-import signal
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -53,8 +52,8 @@ from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
-from cfknode.safety.operator import STOP_SIGNALS
 from cfknode.safety.geofence import Geofence, clamp_reference
+from cfknode.safety.operator import stop_signal_handler
 from cfknode.safety.separation import refusal
 from cfknode.safety.supervisor import Outcome, Supervisor, SupervisorInputs
 
@@ -287,7 +286,8 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
             controller.observers.append(learners[i])
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
-                                 observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box))
+                                 observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box,
+                                 signals=False))
     for i, (d, p) in enumerate(zip(drones, parts) if dashboard is not None else ()):
         p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
     records = asyncio.run(_gather(drones, parts, coordinator))
@@ -311,17 +311,9 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
 
 async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
                   coordinator: FleetCoordinator) -> list[FlightRecord]:
-    loop = asyncio.get_running_loop()
-    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}  # ProcessSignals' own, under the CLI
-
-    def own_signals() -> None:
-        # Each loop routes the stop signals to its own supervisor while it runs (and takes them
-        # back when it ends); the fleet's go to all, so they are taken over again each time.
-        try:
-            for sig in STOP_SIGNALS:
-                loop.add_signal_handler(sig, coordinator.interrupt, sig.name)
-        except (RuntimeError, ValueError, NotImplementedError):
-            pass
+    """Every drone's loop to its end. The stop signals go to the coordinator (so to every drone)
+    from one relay thread for the whole fleet: the loops do not take them (``FlightParts.signals``),
+    and a signal still reaches every supervisor, and its radio, while the loops' thread is stuck."""
 
     async def one(drone: Backend, p: FlightParts) -> FlightRecord:
         try:
@@ -330,20 +322,9 @@ async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
             leave = getattr(drone.clock, "leave", None)  # a lockstep member must not hold the others back
             if leave is not None:
                 leave()
-            own_signals()
 
-    tasks = [asyncio.ensure_future(one(d, p)) for d, p in zip(drones, parts)]
-    await asyncio.sleep(0)  # every loop has started (and taken the stop signals for itself)
-    own_signals()
-    try:
-        return list(await asyncio.gather(*tasks))
-    finally:
-        try:
-            for sig in STOP_SIGNALS:
-                loop.remove_signal_handler(sig)
-                signal.signal(sig, previous[sig] if previous[sig] is not None else signal.SIG_DFL)
-        except (RuntimeError, ValueError, NotImplementedError):
-            pass  # not the main thread: the handlers were never ours
+    with stop_signal_handler(coordinator):
+        return list(await asyncio.gather(*(one(d, p) for d, p in zip(drones, parts))))
 
 
 def true_min_separation(records: Sequence[FlightRecord]) -> float:
