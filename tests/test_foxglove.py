@@ -198,3 +198,30 @@ def test_a_bad_port_is_one_line():
         LiveServer(port=70000)
     with LiveServer(port=0) as first, pytest.raises(ConfigError, match=f"cannot serve Foxglove on 127.0.0.1:{first.port}"):
         LiveServer(port=first.port)
+
+
+def test_a_fleet_log_shows_every_drone_as_its_own_frame(tmp_path):
+    from cfknode.app.fleet.flight import run_fleet
+
+    cfg = load_config(overrides={**SHORT_FLIGHT, "fleet.size": 2, "log.dir": str(tmp_path),
+                                 "safety.estop_dir": str(tmp_path / "e")})
+    result = run_fleet(cfg, name_hint="foxfleet")
+    frames: dict[str, int] = {}
+    ids: set[str] = set()
+    with open(result.log_path, "rb") as fh:
+        for _, channel, msg in make_reader(fh).iter_messages(topics=["/tf", "/scene"]):
+            m = read(channel.topic, msg.data)
+            if channel.topic == "/tf":
+                frames[m.child_frame_id] = frames.get(m.child_frame_id, 0) + 1
+            else:
+                ids.update(e.id for e in m.entities)
+    assert set(frames) == {"cf1", "cf2"} and frames["cf1"] == frames["cf2"] > 10
+    assert {"cf1/reference", "cf2/reference", "cf1/horizon", "cf2/horizon", "fence"} <= ids
+
+
+def test_foxglove_is_refused_for_a_ray_fleet_in_one_line(capsys):
+    from cfknode.app.cli import main
+
+    assert main(["fly", "--fleet", "2", "--executor", "ray", "--foxglove"]) == 2
+    err = capsys.readouterr().err
+    assert "--foxglove serves fleets flown here" in err and err.count("\n") == 1

@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
     # SIGTERM and SIGHUP end a flight as Ctrl-C does (land, then stop), never the process at once.
     try:
-        with ProcessSignals() as signals, _live_view(args, console) as live:
+        with ProcessSignals() as signals, live_view(args, console) as live:
             result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None,
                                 on_supervisor=signals.route, live=live)
     except MissionError as exc:
@@ -202,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if complete and result.log_incomplete is None and not result.outcome.errors else 1
 
 
-def _live_view(args: argparse.Namespace, console: Any) -> contextlib.AbstractContextManager[Any]:
+def live_view(args: argparse.Namespace, console: Any) -> contextlib.AbstractContextManager[Any]:
     """The Foxglove live server that ``--foxglove`` asks for (a bad port is a ConfigError), or none."""
     port = getattr(args, "foxglove", None)
     if port is None:

@@ -8,11 +8,15 @@ import json
 import sys
 from typing import Any, Sequence
 
+from cfknode.app.cli import UsageError
+from cfknode.app.commands.fly import live_view
 from cfknode.app.config import Config
 
 
 def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
     """Exit status 0 when every drone flew its mission to the end and the log is complete, else 1."""
+    from rich.console import Console
+
     from cfknode.app.fleet.flight import run_fleet
     from cfknode.safety.process_signals import ProcessSignals
 
@@ -23,6 +27,9 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
           f"for {t.duration} s, controller {cfg.controller.kind}{' + online learning' if cfg.online.enabled else ''}, "
           "lockstep simulation" + (" (a Ray actor per drone)" if ray else ""), file=out)
     if ray:
+        if getattr(args, "foxglove", None) is not None:
+            raise UsageError("--foxglove serves fleets flown here; a Ray fleet's drones fly on other nodes "
+                             "(their logs carry the Foxglove channels: docs/foxglove.md)")
         from cfknode.app.bench.executor import ExecutorSettings
         from cfknode.app.fleet.ray_fleet import run_fleet_ray
         from cfknode.app.mission import MissionError
@@ -36,9 +43,9 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
         return report(cfg, result, args)
     # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
     dashboard = fleet_dashboard(cfg, args)
-    with ProcessSignals() as signals:
+    with ProcessSignals() as signals, live_view(args, Console(stderr=True)) as live:
         result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route,
-                           dashboard=dashboard)
+                           dashboard=dashboard, live=live)
     if dashboard is not None and dashboard.error is not None:
         print(f"cfknode: the dashboard failed ({dashboard.error}); the flight went on without it", file=sys.stderr)
     return report(cfg, result, args)
@@ -59,9 +66,9 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
           "real time", file=out)
     dashboard = fleet_dashboard(cfg, args, len(names))
     try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet/flight.py)
-        with ProcessSignals() as signals:
+        with ProcessSignals() as signals, live_view(args, Console(stderr=True)) as live:
             result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
-                                     on_coordinator=signals.route, dashboard=dashboard)
+                                     on_coordinator=signals.route, dashboard=dashboard, live=live)
     except MissionError as exc:
         print(f"cfknode: error: {exc}", file=sys.stderr)
         return 1

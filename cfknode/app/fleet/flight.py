@@ -40,6 +40,7 @@ from cfknode.app.config import Config, ConfigError
 from cfknode.app.fleet.coordinator import FleetCoordinator
 from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
+from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
 from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
@@ -187,9 +188,10 @@ def _pose_rate_hz(cfg: Config) -> float:
 
 
 def run_fleet(cfg: Config, name_hint: str = "fleet",
-              on_coordinator: Callable[[FleetCoordinator], None] | None = None, dashboard: Any = None) -> FleetResult:
+              on_coordinator: Callable[[FleetCoordinator], None] | None = None, dashboard: Any = None,
+              live: Any = None) -> FleetResult:
     """Fly ``cfg.fleet.size`` simulated drones in one flight and return each one's summary;
-    ``on_coordinator`` and ``dashboard`` as for ``fly_drones``."""
+    ``on_coordinator``, ``dashboard`` and ``live`` as for ``fly_drones``."""
     names, configs, refs = drone_configs(cfg)
     from cfknode.sim_backend.faults import check_faults
 
@@ -219,7 +221,7 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
                         for n, d in zip(names, backend.drones)]
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator, trainers, dashboard)
+                              handback, on_coordinator, trainers, dashboard, live)
     finally:
         for box in boxes:
             box.close()
@@ -230,7 +232,7 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
                name_hint: str, forced: Sequence[dict[str, Any]],
                handback: Callable[[], Sequence[dict[str, Any]]],
                on_coordinator: Callable[[FleetCoordinator], None] | None = None,
-               trainers: Sequence[Any] | None = None, dashboard: Any = None) -> FleetResult:
+               trainers: Sequence[Any] | None = None, dashboard: Any = None, live: Any = None) -> FleetResult:
     """Fly connected drones (simulated or real: each a ``Backend``) under one coordinator and one log.
 
     ``handback()`` hands every drone back once all flight loops ended and returns each one's
@@ -240,9 +242,14 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
     arrive outside the flight loops (``ProcessSignals.route``). ``trainers``: each drone's port on
     the shared trainer when it learns online (``fleet_learning.fleet_trainers``), else None.
     ``dashboard``: a live view (cfknode/app/ui/fleet_dashboard.py ``FleetDashboard``) whose
-    ``observers(i, drone, reference, controller, supervisor, coordinator)`` watch drone i; None: none."""
+    ``observers(i, drone, reference, controller, supervisor, coordinator)`` watch drone i; None: none.
+    ``live``: a Foxglove live server to show the fleet on (docs/foxglove.md)."""
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
-    with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as flog:
+    with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as log:
+        # Every drone's frame, reference, plan and the fence in Foxglove's schemas, in the log and to ``live``.
+        fence = (cfg.safety.fence_min, cfg.safety.fence_max)
+        flog = FoxgloveView(log, [McapSink(log), *([live] if live is not None else [])],
+                            {n: Drawing(reference_points(ref.inner), fence) for n, ref in zip(names, refs)})
         for event in forced:
             flog.write("/events", 0.0, event)
         logs = [PrefixedLog(flog, n) for n in names]
@@ -284,6 +291,7 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
                                 deadline_s=deadline, ground_z=ground[i])
         if learners[i] is not None:
             controller.observers.append(learners[i])
+        flog.follow_plan(names[i], lambda c=controller: c.predicted_positions)
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                  observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box,

@@ -135,10 +135,10 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
 
 def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots", console: Any = None,
                     on_coordinator: Callable[[FleetCoordinator], None] | None = None,
-                    dashboard: Any = None) -> FleetResult:
+                    dashboard: Any = None, live: Any = None) -> FleetResult:
     """Fly the named robots together; ``ConfigError`` for a refused fleet, ``MissionError`` for
-    a robot that could not be connected or failed its pre-flight checks. ``on_coordinator`` as
-    for ``fly_drones``."""
+    a robot that could not be connected or failed its pre-flight checks. ``on_coordinator`` and
+    ``live`` as for ``fly_drones``."""
     from cfknode.app.backends.crazyflie import HARDWARE_ERRORS
     from cfknode.app.backends.robot_fleet import RobotFleetBackend
     from cfknode.app.fleet.learning import fleet_trainers
@@ -189,7 +189,7 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
                 return out
 
             return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator, trainers, dashboard)
+                              handback, on_coordinator, trainers, dashboard, live)
     except HARDWARE_ERRORS as exc:
         raise MissionError(str(exc)) from exc
     finally:
