@@ -12,7 +12,7 @@ from collections import deque
 from types import SimpleNamespace
 
 from cfknode.app import fleet
-from cfknode.app.drone_actor import DroneActor
+from cfknode.app.fleet.drone_actor import DroneActor
 from cfknode.app.mission import build_supervisor
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.safety.supervisor import State

@@ -19,6 +19,7 @@ can start the trainer itself (the virtual clock waits).
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 from typing import Any, Iterator
@@ -164,36 +165,76 @@ class _NoLog:
         pass
 
 
-@contextlib.contextmanager
-def online_learning(
-    controller: Controller, cfg: Config, *, lockstep: bool = True, log: Any = None, ground_z: float | None = None,
-    speed: float | None = None,
-) -> Iterator[OnlineLearner]:
+class OnlineLearning:
     """Online learning for a ``Controller`` flown by any loop (another simulator, a ROS 2 node).
 
-    Starts the trainer (the calling script needs an ``if __name__ == "__main__":`` guard), gives
-    the controller an empty model slot if it has none, and watches its ticks: call
+    Use it as ``with online_learning(controller, cfg) as learner:`` or, in a plug-in with no
+    end-of-run hook, ``session = online_learning(controller, cfg); learner = session.start()`` and
+    ``session.stop()`` (also run at interpreter exit if never called, so no trainer is left behind).
+
+    ``start`` starts the trainer (the calling script needs an ``if __name__ == "__main__":`` guard),
+    gives the controller an empty model slot if it has none, and watches its ticks: call
     ``controller.publish()`` once each command is sent (or let the next ``step`` do it).
-    ``lockstep``: the caller's time is simulated (models apply no earlier than their honest
-    training delay); False on a wall clock. ``ground_z``: the floor's height (None: no floor,
-    e.g. a flight that starts in the air). ``speed``: the gate's envelope speed (None: from the data).
+    ``lockstep``: the caller's time is simulated (models apply no earlier than their honest training
+    delay); False on a wall clock. ``ground_z``: the floor's height, below which (plus 0.1 m) no
+    window is learned; None takes the controller's (``Controller.ground_z``: given, or the first
+    state's height, with a warning). ``speed``: the gate's envelope speed (None: from the data).
     """
-    cfg = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, enabled=True))
-    if controller.model is None:
-        controller.model = ModelSlot(None, version=0)
-    with start_trainer(cfg) as trainer:
-        learner = OnlineLearner(learner_settings(cfg, lockstep, ground_z, speed), controller.model, trainer,
-                                log if log is not None else _NoLog())
-        controller.observers.append(learner)
+
+    def __init__(self, controller: Controller, cfg: Config, *, lockstep: bool = True, log: Any = None,
+                 ground_z: float | None = None, speed: float | None = None) -> None:
+        self._controller = controller
+        self._cfg = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, enabled=True))
+        self._lockstep, self._log, self._ground_z, self._speed = lockstep, log, ground_z, speed
+        self._trainer: contextlib.ExitStack | None = None
+        self.learner: OnlineLearner | None = None
+
+    def start(self) -> OnlineLearner:
+        """Start the trainer and attach the learner; returns it (its ``stats``, ``rounds``, ``swaps``)."""
+        if self.learner is not None:
+            return self.learner
+        controller = self._controller
+        if controller.model is None:
+            controller.model = ModelSlot(None, version=0)
+        stack = contextlib.ExitStack()
+        trainer = stack.enter_context(start_trainer(self._cfg))
+        ground_z = self._ground_z if self._ground_z is not None else getattr(controller, "ground_z", None)
+        self.learner = OnlineLearner(learner_settings(self._cfg, self._lockstep, ground_z, self._speed),
+                                     controller.model, trainer, self._log if self._log is not None else _NoLog())
+        controller.observers.append(self.learner)
+        self._trainer = stack
+        atexit.register(self.stop)
+        return self.learner
+
+    def stop(self) -> None:
+        """Detach the learner and stop the trainer (the last model swapped in stays in the slot)."""
+        if self.learner is None or self._trainer is None:
+            return
+        atexit.unregister(self.stop)
         try:
-            yield learner
+            self._controller.publish()
         finally:
-            controller.publish()
-            controller.observers.remove(learner)
+            if self.learner in self._controller.observers:
+                self._controller.observers.remove(self.learner)
+            stack, self._trainer = self._trainer, None
+            stack.close()
+
+    def __enter__(self) -> OnlineLearner:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def online_learning(controller: Controller, cfg: Config, *, lockstep: bool = True, log: Any = None,
+                    ground_z: float | None = None, speed: float | None = None) -> OnlineLearning:
+    """Online learning for ``controller``: a ``with`` block, or ``start()`` / ``stop()`` (``OnlineLearning``)."""
+    return OnlineLearning(controller, cfg, lockstep=lockstep, log=log, ground_z=ground_z, speed=speed)
 
 
 __all__ = [
     "check_online",
+    "OnlineLearning",
     "online_learning",
     "gate_limits",
     "learner_settings",
