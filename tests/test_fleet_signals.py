@@ -19,7 +19,7 @@ from cfknode.flight.controller import TickInfo
 from cfknode.safety.process_signals import ProcessSignals
 from fakes import finish_json, wait_for_log_events
 
-from cfknode.app import fleet
+from cfknode.app.fleet import flight as fleet
 from cfknode.app.config import load_config
 from cfknode.app.fleet.flight import FleetCoordinator, drone_configs
 from cfknode.app.logs.writer import read_log

@@ -11,7 +11,7 @@ import time
 from collections import deque
 from types import SimpleNamespace
 
-from cfknode.app import fleet
+from cfknode.app.fleet import flight as fleet
 from cfknode.app.fleet.drone_actor import DroneActor
 from cfknode.app.mission import build_supervisor
 from cfknode.kernel.setpoint import AttitudeSetpoint
