@@ -188,7 +188,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "t_col": _num("window length, s"), "error": _str("why the round failed (empty when ok)")},
     ),
     ChannelSpec(
-        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation.py), one per flown tick.",
+        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation/), one per flown tick.",
         {"offset": _vec(3, "acceleration offset added to the model, world, m/s^2"),
          "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
          "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),

@@ -19,10 +19,12 @@ import numpy as np
 
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.vehicle import VehicleConfig
-from cfknode.flight.adaptation import AdaptationEstimate, FastAdaptation, settings_from_controller
+from cfknode.flight.adaptation.estimate import AdaptationEstimate
+from cfknode.flight.adaptation.layer import FastAdaptation
+from cfknode.flight.adaptation.settings import settings_from_controller
+from cfknode.flight.adaptation.thrust_lag import ThrustLagBank
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
-from cfknode.flight.thrust_lag import ThrustLagBank
 
 GROUND_MARGIN = 0.1  # m above the floor: below, the ground carries part of the weight
 _RESET_STATES = ("IDLE", "PREFLIGHT", "LANDED", "EMERGENCY")
@@ -37,7 +39,7 @@ class LoopAdaptation:
         self._r = np.zeros(3)  # the model's residual for it
         self._thrust = 0.0  # N, collective thrust sent for it
         # The thrust acting now is the sent one through the motors' lag: configured, or (null) chosen in flight
-        # among the candidates and the vehicle's (flight/thrust_lag.py).
+        # among the candidates and the vehicle's (thrust_lag.py).
         tuning = ctrl.adaptation_settings
         fixed = tuning.thrust_lag_s is not None
         self.lags = ThrustLagBank(() if fixed else tuning.thrust_lag_candidates_s,
@@ -47,6 +49,10 @@ class LoopAdaptation:
         self._version: int | None = None
         self._ground = ground_z  # None: the first estimate's height
         self.saturated_ticks = 0
+        self.stepping_ticks = 0  # ticks flown while a step was tracked
+        self.frozen_ticks = 0  # ticks flown with the estimate frozen (stale pose, a stalled host)
+        self.longest_step_s = 0.0  # s, the longest a step was tracked
+        self._now = 0.0
         self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
         self._imu_t = -float("inf")  # the newest accelerometer sample used
 
@@ -98,7 +104,16 @@ class LoopAdaptation:
                           u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
+        self._count(now)
         return self.layer.applied
+
+    def _count(self, now: float) -> None:
+        """The layer's state over the flight, for the summary: a user sees when it was not learning."""
+        e = self.layer.estimate
+        self._now = now
+        self.stepping_ticks += int(e.stepping)
+        self.frozen_ticks += int(e.frozen)
+        self.longest_step_s = max(self.longest_step_s, self.layer.tracker.tracked_s(now))
 
     def _imu_theta(self, now: float, est: Any) -> tuple[float, float] | None:
         """(time, theta) of an accelerometer sample new since the last tick: the specific force along the body
@@ -172,7 +187,8 @@ class LoopAdaptation:
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
-                "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale}
+                "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale,
+                "tracking_s": self.layer.tracker.tracked_s(self._now)}
 
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
@@ -181,7 +197,10 @@ class LoopAdaptation:
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases,
-                "adaptation_acts_end": list(self.layer.applied.acts)}
+                "adaptation_acts_end": list(self.layer.applied.acts),
+                "adaptation_stepping_ticks": self.stepping_ticks, "adaptation_frozen_ticks": self.frozen_ticks,
+                "adaptation_longest_step_s": round(self.longest_step_s, 4),
+                "adaptation_steps_capped": self.layer.tracker.capped, "adaptation_stepping_end": e.stepping}
 
 
 def measured_position(est: Any) -> np.ndarray:

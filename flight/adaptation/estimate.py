@@ -1,0 +1,44 @@
+"""What the fast layer tells the controller each tick, and what it flies with where an axis does not act.
+
+Besides the three estimates it carries the layer's state (frozen, saturated, tracking a step, the axes that
+act), so ``Command``, ``TickInfo``, the log and the summary show when the layer is not learning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AdaptationEstimate:
+    offset: np.ndarray  # (3,) m/s^2, added to the model's acceleration
+    thrust_scale: float  # estimated mass / nominal mass
+    axis_gain: np.ndarray  # (3,) delivered / commanded horizontal acceleration (z is 1)
+    frozen: bool = False  # no update this tick (stale pose or not flying)
+    saturated: bool = False  # the last applied command was at the thrust clamp or the tilt limit
+    stepping: bool = False  # a vertical step was detected and is being tracked at the step bandwidth
+    acts: tuple[bool, bool, bool] = (True, True, True)  # x, y, vertical: the estimate acts there (see engagement)
+
+    @classmethod
+    def neutral(cls) -> AdaptationEstimate:
+        return cls(np.zeros(3), 1.0, np.ones(3))
+
+    def to_log(self) -> dict[str, object]:
+        return {"offset": self.offset, "thrust_scale": self.thrust_scale, "axis_gain": self.axis_gain[:2],
+                "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping, "acts": list(self.acts)}
+
+
+def applied_estimate(estimate: AdaptationEstimate, acts: np.ndarray) -> AdaptationEstimate:
+    """What the controller flies with: ``estimate`` on the axes that act, the model alone on the others
+    (offset 0; thrust scale 1 and axis gain 1 where the vertical / that horizontal axis does not act)."""
+    if acts.all():
+        return estimate
+    gain = np.where(np.array([acts[0], acts[1], True]), estimate.axis_gain, 1.0)
+    return replace(estimate, offset=np.where(acts, estimate.offset, 0.0),
+                   thrust_scale=estimate.thrust_scale if acts[2] else 1.0, axis_gain=gain,
+                   acts=(bool(acts[0]), bool(acts[1]), bool(acts[2])))
+
+
+__all__ = ["AdaptationEstimate", "applied_estimate"]
