@@ -6,12 +6,13 @@ act), so ``Command``, ``TickInfo``, the log and the summary show when the layer 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class AdaptationEstimate:
     offset: np.ndarray  # (3,) m/s^2, added to the model's acceleration
     thrust_scale: float  # estimated mass / nominal mass
@@ -30,15 +31,24 @@ class AdaptationEstimate:
                 "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping, "acts": list(self.acts)}
 
 
-def applied_estimate(estimate: AdaptationEstimate, acts: np.ndarray) -> AdaptationEstimate:
+def applied_estimate(estimate: AdaptationEstimate, acts: Sequence[bool] | np.ndarray) -> AdaptationEstimate:
     """What the controller flies with: ``estimate`` on the axes that act, the model alone on the others
     (offset 0; thrust scale 1 and axis gain 1 where the vertical / that horizontal axis does not act)."""
-    if acts.all():
+    ax, ay, az = bool(acts[0]), bool(acts[1]), bool(acts[2])
+    if ax and ay and az:
         return estimate
-    gain = np.where(np.array([acts[0], acts[1], True]), estimate.axis_gain, 1.0)
-    return replace(estimate, offset=np.where(acts, estimate.offset, 0.0),
-                   thrust_scale=estimate.thrust_scale if acts[2] else 1.0, axis_gain=gain,
-                   acts=(bool(acts[0]), bool(acts[1]), bool(acts[2])))
+    if not (ax or ay or az):  # a quiet flight's every tick: the model alone
+        offset, gain = _ZERO.copy(), _ONES.copy()
+    else:
+        o, k = estimate.offset, estimate.axis_gain
+        offset = np.array([o[0] if ax else 0.0, o[1] if ay else 0.0, o[2] if az else 0.0])
+        gain = np.array([k[0] if ax else 1.0, k[1] if ay else 1.0, k[2]])
+    return AdaptationEstimate(offset, estimate.thrust_scale if az else 1.0, gain, estimate.frozen, estimate.saturated,
+                              estimate.stepping, (ax, ay, az))
+
+
+_ZERO = np.zeros(3)
+_ONES = np.ones(3)
 
 
 __all__ = ["AdaptationEstimate", "applied_estimate"]

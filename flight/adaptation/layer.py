@@ -48,7 +48,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from cfknode.flight.adaptation.engagement import engagement
+from cfknode.flight.adaptation.engagement import Engagement
 from cfknode.flight.adaptation.estimate import AdaptationEstimate, applied_estimate
 from cfknode.flight.adaptation.imu_step import ImuStepDetector
 from cfknode.flight.adaptation.observer import (
@@ -90,15 +90,20 @@ class FastAdaptation:
         self._imu = ImuStepDetector()
         self._frames = FrameStepDetector()
         self.tracker = StepTracker(settings.step_hold_s, settings.step_max_s)
+        self._engagement = Engagement(settings.engage_level, settings.engage_slow_level, settings.engage_slow_s,
+                                      settings.release_s)
         self.reset()
+
+    @property
+    def acts(self) -> np.ndarray:
+        """x, y, vertical: the axes the estimate acts on (see engagement.py)."""
+        return np.array(self._engagement.acts)
 
     def reset(self) -> None:
         """Back to the model alone (take-off, landing, non-finite input)."""
         self.estimate = AdaptationEstimate.neutral()
-        self._quiet = np.zeros(3)
-        self._slow = np.zeros(3)  # the evidence's slow mean
-        self.acts = np.full(3, self.s.engage_level <= 0.0)  # level 0: every axis always acts
-        self.applied = applied_estimate(self.estimate, self.acts)  # what the controller flies with (see engagement)
+        self._engagement.reset()
+        self.applied = applied_estimate(self.estimate, self._engagement.acts)  # what the controller flies with
         self._sigma = np.zeros(3)
         self._out = np.zeros(3)  # the published offset before its bound and the saturation hold
         self._obs: np.ndarray | None = None  # dob z or l1 v_hat; None: re-synchronise on the next update
@@ -138,7 +143,7 @@ class FastAdaptation:
         (imu_step.py). Returns the estimate for this tick."""
         if not self.s.enabled:
             return self.estimate
-        if not (np.all(np.isfinite(v_meas)) and np.all(np.isfinite(u_applied)) and np.all(np.isfinite(model_acc))):
+        if not math.isfinite(float(v_meas.sum() + u_applied.sum() + model_acc.sum())):  # one check: nan, inf
             self.reset()
             return self.estimate
         if pose_fresh:
@@ -153,7 +158,7 @@ class FastAdaptation:
             self._frames.forget_velocity()
             self._fit.reset()
             self.estimate = replace(self.estimate, frozen=True, saturated=thrust_sat or tilt_sat)
-            self.applied = applied_estimate(self.estimate, self.acts)
+            self.applied = applied_estimate(self.estimate, self._engagement.acts)
             return self.estimate
 
         self._fitting = self.s.mode == "dob" and self.s.step_threshold > 0.0 and x_meas is not None
@@ -185,8 +190,10 @@ class FastAdaptation:
         # Anti-windup, first half: the observer is fed the command as flown (clamped thrust, limited tilt), so
         # the gap between what was asked and what the limits let through is never integrated as a disturbance.
         # Projection: the estimate stays in its box (the observer is told, so it does not wind up beyond it).
-        bounded = np.clip(new_sigma, -self.s.max_offset, self.s.max_offset)
-        if np.any(bounded != new_sigma):
+        m = self.s.max_offset
+        bounded = new_sigma
+        if not all(-m <= x <= m for x in new_sigma.tolist()):  # floats: cheaper than numpy on three numbers
+            bounded = np.clip(new_sigma, -m, m)
             self._shift_observer(bounded - new_sigma, omega)
         self._sigma = bounded
         if self.s.mode == "dob":  # a tracked step is published as fast as the observer learns it
@@ -292,7 +299,7 @@ class FastAdaptation:
                 stepping: bool = False, omega: np.ndarray | None = None, fitted_scale: float | None = None) -> None:
         """Move sigma into the thrust scale, update the axis gains, then publish the remaining offset (bounded)."""
         est, s = self.estimate, self.s
-        scale, gain = est.thrust_scale, est.axis_gain.copy()
+        scale, gain = est.thrust_scale, est.axis_gain
         sigma = self._sigma
         # Moving held error into s is no integration: it changes no prediction (see sigma_after_transfer).
         rate = s.step_thrust_rate if stepping else s.thrust_rate
@@ -301,8 +308,9 @@ class FastAdaptation:
         else:
             new_scale = thrust_transfer(float(self._out[2]), float(u[2]), self.g, scale, rate, dt,
                                         s.thrust_scale_bounds)
-        new_gain = gain.copy()
+        new_gain = gain  # shared, never written: a new array when the gains move
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
+            new_gain = gain.copy()
             for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness
                 new_gain[i] = axis_transfer(float(u[i] - u_cmd[i]), float(u_cmd[i]), gain[i], s.axis_rate, dt,
                                             s.axis_gain_bounds)
@@ -313,9 +321,8 @@ class FastAdaptation:
         offset = self._published()
         # Second half: on a saturated axis the MPC's offset is held; a growing one would only push the plan
         # further into a limit it cannot act beyond (the mass estimate keeps learning from the flown thrust).
-        hold = np.array([tilt_sat, tilt_sat, thrust_sat])
-        if hold.any():
-            offset = np.where(hold, est.offset, offset)
+        if tilt_sat or thrust_sat:
+            offset = np.where(np.array([tilt_sat, tilt_sat, thrust_sat]), est.offset, offset)
         self.estimate = AdaptationEstimate(offset, new_scale, new_gain, frozen=False, saturated=thrust_sat or tilt_sat,
                                            stepping=stepping)
         self._engage(dt)
@@ -323,19 +330,17 @@ class FastAdaptation:
     def _engage(self, dt: float) -> None:
         """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the
         offset plus what the mass estimate moved out of it (its error at hover)."""
-        out = np.clip(self._out, -self.s.max_offset, self.s.max_offset)
-        evidence = np.array([out[0], out[1], out[2] + (self.estimate.thrust_scale - 1.0) * self.g])
-        self._slow = self._slow + min(1.0, dt / self.s.engage_slow_s) * (evidence - self._slow)
-        self.acts, self._quiet = engagement(self.acts, self._quiet, evidence, self._slow, self.s.engage_level,
-                                            self.s.engage_slow_level, self.s.release_s, dt)
-        self.applied = applied_estimate(self.estimate, self.acts)
+        m = self.s.max_offset
+        x, y, z = (min(max(v, -m), m) for v in self._out.tolist())
+        acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
+        self.applied = applied_estimate(self.estimate, acts)
 
     def _published(self) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the
         thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag)."""
-        offset = np.clip(self._out, -self.s.max_offset, self.s.max_offset)
-        offset[:2] = shrink(offset[:2], self.s.offset_deadband)
-        return offset
+        m, band = self.s.max_offset, self.s.offset_deadband
+        x, y, z = (min(max(v, -m), m) for v in self._out.tolist())
+        return np.array([shrink(x, band), shrink(y, band), z])
 
     def _shift_observer(self, d_sigma: np.ndarray, omega: np.ndarray | None = None) -> None:
         """Make the observer report sigma + d_sigma from now on (its prediction continues from there); the

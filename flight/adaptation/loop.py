@@ -142,8 +142,9 @@ class LoopAdaptation:
         mass."""
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
         acting = self.lags.acting()
-        thrust = self._thrust if acting is None else acting
-        return thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
+        k = (self._thrust if acting is None else acting) / mass
+        x, y, z = bz.tolist()  # floats: one array built, not three
+        return np.array([k * x, k * y, k * z - self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
         """The MPC's residual: the model's, with the applied offset added to every stage's constant."""
@@ -215,7 +216,7 @@ def measured_position(est: Any) -> np.ndarray:
 
 def body_z(q: Any) -> np.ndarray:
     """The body z axis in the world from a (w, x, y, z) quaternion."""
-    w, x, y, z = (float(c) for c in q)
+    w, x, y, z = np.asarray(q, dtype=float).tolist()
     return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 

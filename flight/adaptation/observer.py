@@ -6,7 +6,11 @@ as the weights of a learned model's features, beside the constant offset it adap
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import numpy as np
+
+FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 
 
 def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarray | float, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -38,11 +42,11 @@ def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float
     return out + np.minimum(1.0, omega * dt) * (sigma - out)
 
 
-def shrink(offset: np.ndarray, band: float) -> np.ndarray:
+def shrink(offset: FloatOrArray, band: float) -> FloatOrArray:
     """``offset`` with what is not clearly above ``band`` (m/s^2) taken out, smoothly: d^3 / (d^2 + band^2).
 
     Below the band the value falls off as d^3 (a quiet flight's few mm/s^2 of residual dynamics and noise do
-    not reach the MPC); well above it the value passes with a bias of band^2 / d."""
+    not reach the MPC); well above it the value passes with a bias of band^2 / d. A float or an array."""
     if band <= 0.0:
         return offset
     sq = offset * offset
@@ -59,7 +63,7 @@ def thrust_transfer(sigma_z: float, u_z: float, g: float, scale: float, rate: fl
         return scale
     target = scale * lift / max(lift + sigma_z, 0.1 * g)
     step = min(1.0, rate * dt)
-    return float(np.clip(scale + step * (target - scale), *bounds))
+    return float(min(max(scale + step * (target - scale), bounds[0]), bounds[1]))
 
 
 def axis_transfer(sigma_xy: float, u_xy: float, gain: float, rate: float, dt: float,
@@ -76,7 +80,8 @@ def sigma_after_transfer(sigma: np.ndarray, u: np.ndarray, g: float, s_old: floa
     """sigma once the thrust scale changed, so model + layer predicts the same acceleration.
 
     A larger s sends more thrust for the same u (the plant does more): sigma grows by (ds / s)(u + g e_z + sigma)."""
-    force = u + np.array([0.0, 0.0, g]) + sigma
+    force = u + sigma
+    force[2] = (u[2] + g) + sigma[2]  # u + g e_z + sigma, without a fourth array
     return sigma + (s_new / s_old - 1.0) * force
 
 
