@@ -330,17 +330,22 @@ class FastAdaptation:
     def _engage(self, dt: float) -> None:
         """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the
         offset plus what the mass estimate moved out of it (its error at hover)."""
-        m = self.s.max_offset
-        x, y, z = (min(max(v, -m), m) for v in self._out.tolist())
+        x, y, z = self._bounded_out()
         acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
         self.applied = applied_estimate(self.estimate, acts)
 
     def _published(self) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the
         thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag)."""
-        m, band = self.s.max_offset, self.s.offset_deadband
-        x, y, z = (min(max(v, -m), m) for v in self._out.tolist())
+        x, y, z = self._bounded_out()
+        band = self.s.offset_deadband
         return np.array([shrink(x, band), shrink(y, band), z])
+
+    def _bounded_out(self) -> tuple[float, float, float]:
+        """The offset before its shrink, bounded (floats: numpy's per-call cost on three numbers is the work)."""
+        m = self.s.max_offset
+        x, y, z = self._out.tolist()
+        return min(max(x, -m), m), min(max(y, -m), m), min(max(z, -m), m)
 
     def _shift_observer(self, d_sigma: np.ndarray, omega: np.ndarray | None = None) -> None:
         """Make the observer report sigma + d_sigma from now on (its prediction continues from there); the
