@@ -49,6 +49,7 @@ class LoopAdaptation:
         self._version: int | None = None
         self._ground = ground_z  # None: the first estimate's height
         self.saturated_ticks = 0
+        self._zeros: dict[int, ResidualLinearisation] = {}  # per horizon: the zero residual, built once
         self.stepping_ticks = 0  # ticks flown while a step was tracked
         self.frozen_ticks = 0  # ticks flown with the estimate frozen (stale pose, a stalled host)
         self.longest_step_s = 0.0  # s, the longest a step was tracked
@@ -147,12 +148,19 @@ class LoopAdaptation:
         return np.array([k * x, k * y, k * z - self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
-        """The MPC's residual: the model's, with the applied offset added to every stage's constant."""
-        offset = self.layer.applied.offset
+        """The MPC's residual: the model's, with the applied offset added to every stage's constant. No model and
+        no offset (the layer acting on no axis): None, which the MPC flies as a zero residual, with no arrays
+        built for it."""
         if not self.layer.s.enabled:
             return model_residual
+        offset = self.layer.applied.offset
         if model_residual is None:
-            model_residual = ResidualLinearisation.zeros(horizon)
+            if not any(offset.tolist()):
+                return None
+            zero = self._zeros.get(horizon)
+            if zero is None:
+                zero = self._zeros[horizon] = ResidualLinearisation.zeros(horizon)
+            return ResidualLinearisation(np.broadcast_to(offset, zero.c.shape), zero.jx, zero.ju)
         return ResidualLinearisation(model_residual.c + offset, model_residual.jx, model_residual.ju)
 
     def shaping(self) -> CommandShaping:
