@@ -114,9 +114,9 @@ def embedded_flight(seconds: float, seed: int = 0) -> dict[str, Any]:
 def test_embedded_flight_from_rest_at_1_2_m_s_takes_both_mass_steps() -> None:
     res = embedded_flight(6.0)
     adaptation = res["controller"].adaptation
-    summary = adaptation.summary()
+    state = adaptation.summary()["adaptation_state"]
     # Each step is tracked a bounded time, and the layer is not tracking most of the flight.
-    assert summary["adaptation_longest_step_s"] <= adaptation.layer.s.step_max_s
-    assert summary["adaptation_stepping_ticks"] == int(res["stepping"].sum()) < 0.5 * res["t"].size
+    assert state["longest_step_s"] <= adaptation.layer.s.step_max_s
+    assert state["stepping_ticks"] == int(res["stepping"].sum()) < 0.5 * res["t"].size
     assert scale_after(res, 3.5, 4.0) == pytest.approx(0.5, abs=0.05)
     assert scale_after(res, 5.5, 6.0) == pytest.approx(1.33, abs=0.08)

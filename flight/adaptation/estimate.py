@@ -27,7 +27,9 @@ class AdaptationEstimate:
         return cls(np.zeros(3), 1.0, np.ones(3))
 
     def to_log(self) -> dict[str, object]:
-        return {"offset": self.offset, "thrust_scale": self.thrust_scale, "axis_gain": self.axis_gain[:2],
+        # Lists, not arrays: the log's encoder converts arrays in a slow fallback, 400 times a second.
+        return {"offset": self.offset.tolist(), "thrust_scale": self.thrust_scale,
+                "axis_gain": self.axis_gain[:2].tolist(),
                 "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping, "acts": list(self.acts)}
 
 

@@ -196,7 +196,7 @@ class LoopAdaptation:
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
-                "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale,
+                "estimate_offset": e.offset.tolist(), "estimate_thrust_scale": e.thrust_scale,
                 "tracking_s": self.layer.tracker.tracked_s(self._now)}
 
     def summary(self) -> dict[str, Any]:
@@ -207,9 +207,14 @@ class LoopAdaptation:
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases,
                 "adaptation_acts_end": list(self.layer.applied.acts),
-                "adaptation_stepping_ticks": self.stepping_ticks, "adaptation_frozen_ticks": self.frozen_ticks,
-                "adaptation_longest_step_s": round(self.longest_step_s, 4),
-                "adaptation_steps_capped": self.layer.tracker.capped, "adaptation_stepping_end": e.stepping}
+                "adaptation_state": self.state_summary()}
+
+    def state_summary(self) -> dict[str, Any]:
+        """The layer's state over the flight, one summary field: whether it was tracking a step at the end, for
+        how many ticks it tracked one or was frozen, its longest step and how many the cap ended."""
+        return {"stepping_end": self.layer.estimate.stepping, "stepping_ticks": self.stepping_ticks,
+                "frozen_ticks": self.frozen_ticks, "longest_step_s": round(self.longest_step_s, 4),
+                "steps_capped": self.layer.tracker.capped}
 
 
 def measured_position(est: Any) -> np.ndarray:
