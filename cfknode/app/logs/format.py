@@ -197,7 +197,8 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "stepping": _bool("a vertical step was detected and is tracked at the step bandwidth"),
          "acts": _flags(3, "x, y, vertical: the estimate acts on the axis (else the model alone flies it)"),
          "estimate_offset": _vec(3, "the layer's offset estimate on every axis, acting or not, m/s^2"),
-         "estimate_thrust_scale": _num("the layer's mass estimate, acting or not")},
+         "estimate_thrust_scale": _num("the layer's mass estimate, acting or not"),
+         "tracking_s": _num("s the step being tracked has been tracked (0: none is)")},
     ),
     ChannelSpec(
         "/summary", "cfknode.Summary", "The flight summary (cfknode.app.ui.summary.FlightSummary.to_dict()).",
