@@ -173,6 +173,20 @@ class FastAdaptation:
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
             self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
+        omega = self._observe(v_meas, model_acc, dt, stepping)
+        fitted_scale = None
+        if fit is not None:  # the fitted mass, or the one before the onset if the frames show no step; either
+            fitted_scale = fit[0]  # way the vertical offset stays what it was before the onset
+            self._sigma[2] = self._out[2] = fit[1]
+            if self.s.mode == "dob":
+                self._obs[2] = v_meas[2] - fit[1] / omega[2]
+        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
+        self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
+        return self.estimate
+
+    def _observe(self, v_meas: np.ndarray, model_acc: np.ndarray, dt: float, stepping: bool) -> np.ndarray:
+        """The observer's tick (at the step bandwidth vertically while a step is tracked), bounded, and the
+        published offset's low-pass. Returns the bandwidths it ran at."""
         omega = self.omega if not stepping else np.array([self.omega[0], self.omega[1], self.omega_step])
         if self.s.mode == "dob":
             if omega[2] != self._omega_z or self._jump:  # switch: rescale so that sigma continues (+ the jump)
@@ -200,15 +214,7 @@ class FastAdaptation:
             self._out = smooth_step(self._out, bounded, self._omega_out_step if stepping else self.omega_out, dt)
         else:
             self._out = bounded
-        fitted_scale = None
-        if fit is not None:  # the fitted mass, or the one before the onset if the frames show no step; either
-            fitted_scale = fit[0]  # way the vertical offset stays what it was before the onset
-            self._sigma[2] = self._out[2] = fit[1]
-            if self.s.mode == "dob":
-                self._obs[2] = v_meas[2] - fit[1] / omega[2]
-        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
-        self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
-        return self.estimate
+        return omega
 
     def stalled(self, t: float) -> bool:
         """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The
