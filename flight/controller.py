@@ -19,7 +19,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from cfknode.flight.adaptation_loop import LoopAdaptation
+from cfknode.flight.adaptation import AdaptationEstimate, AdaptationLayer, LoopAdaptation, OracleAdaptation
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import acc_to_setpoint, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
@@ -56,6 +56,9 @@ class Command:
     solve_s: float  # the MPC's own solve time (0 without an MPC)
     ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
     saturated: bool = False  # the thrust cone or the tilt limit cut the command (fast adaptation only)
+    # The adaptation layer's estimate and state this tick (tracking a step, frozen, saturated, the axes it acts
+    # on); None without a layer.
+    layer: AdaptationEstimate | None = None
 
 
 @dataclass(frozen=True)
@@ -77,7 +80,7 @@ class TickInfo:
     saturated: bool = False  # the command was cut by the thrust clamp or the tilt limit (fast adaptation only)
     # The fast layer's estimate this tick (an ``AdaptationEstimate``; None without a layer): the learner does
     # not train on the layer's own transients (a step being tracked, a mass still being learned).
-    layer: Any = None
+    layer: AdaptationEstimate | None = None
 
 
 class TickObserver(Protocol):
@@ -96,7 +99,8 @@ class Controller:
     ``ground_z``: the floor's height, near which the layer does not learn (None: the first
     state's height, as for a flight that takes off from where it starts).
     ``true_mass``: the simulator's true mass [kg], read every tick by ``adaptation`` "oracle"
-    (``adaptation_oracle.py``), which needs it.
+    (``adaptation/oracle.py``), which needs it. ``adaptation``: a layer of one's own (an ``AdaptationLayer``,
+    e.g. ``NoAdaptation``) in place of the one ``settings.adaptation`` names.
     """
 
     def __init__(
@@ -109,6 +113,7 @@ class Controller:
         deadline_s: float | None = None,
         ground_z: float | None = None,
         true_mass: Callable[[], float] | None = None,
+        adaptation: AdaptationLayer | None = None,
     ) -> None:
         self.settings = settings
         self.vehicle = vehicle
@@ -122,14 +127,12 @@ class Controller:
         self.gains = GeometricGains.from_config(settings, vehicle)
         self.offsets = settings.dt * np.arange(settings.horizon + 1)
         self.observers: list[TickObserver] = []
-        self.adaptation: Any = None
-        if settings.adaptation == "oracle":
+        self.adaptation: AdaptationLayer | None = adaptation
+        if adaptation is None and settings.adaptation == "oracle":
             if true_mass is None:
                 raise ValueError("controller.adaptation oracle needs the true mass: it is simulation only")
-            from cfknode.flight.adaptation_oracle import OracleAdaptation
-
             self.adaptation = OracleAdaptation(settings, vehicle, true_mass)
-        elif settings.adaptation != "none":
+        elif adaptation is None and settings.adaptation != "none":
             self.adaptation = LoopAdaptation(settings, vehicle, ground_z)
         self._x_pred: np.ndarray | None = None
         self._u_pred: np.ndarray | None = None
@@ -181,7 +184,8 @@ class Controller:
             setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
             adapt.after_command(np.concatenate((state.p, state.v)), shaped, setpoint.thrust, model_residual)
             saturated = shaped.thrust_saturated or shaped.tilt_saturated
-        command = Command(acc, setpoint, source, status, solve_s, ok, saturated)
+        command = Command(acc, setpoint, source, status, solve_s, ok, saturated,
+                          adapt.estimate if adapt is not None else None)
         if self.observers:
             version = self.model.version if self.model is not None else 0
             self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,

@@ -27,7 +27,7 @@ def wrap_angle(angle: float) -> float:
 
 @dataclass(frozen=True)
 class CommandShaping:
-    """What the fast adaptation layer tells the Mellinger layer (see flight/adaptation.py).
+    """What the fast adaptation layer tells the Mellinger layer (see flight/adaptation/).
 
     ``thrust_scale``: thrust is computed with this times the nominal mass. ``axis_gain``: the horizontal force
     is divided by it (the attitude loop delivers only that fraction of a tilt), bounded to 0.5..2. With

@@ -29,6 +29,7 @@ class AdaptationTuning:
     step_bandwidth_hz: float = 10.0  # vertical bandwidth for ``step_hold_s`` after an alarm
     step_thrust_rate: float = 400.0  # 1/s, thrust_rate for ``step_hold_s`` after an alarm
     step_hold_s: float = 0.3  # s the fast estimate lasts after an alarm
+    step_max_s: float = 1.0  # s a step is tracked at most after its first alarm
     oracle_delay_s: float = 0.0  # s, adaptation "oracle" only: the true mass is told this late
     output_bandwidth_hz: float = 0.0  # dob: the vertical offset is the estimate low-passed again at this cut-off; 0 off
     output_bandwidth_xy_hz: float = 0.0  # the same for x and y

@@ -37,7 +37,7 @@ def hover(lay: FastAdaptation, seconds: float, d: np.ndarray, theta: float = 1.0
     for i in range(int(seconds * RATE)):
         a_used = lay.applied
         u = -a_used.offset
-        # The layer is told the command as flown over its own mass estimate (flight/adaptation_loop.py).
+        # The layer is told the command as flown over its own mass estimate (flight/adaptation/loop.py).
         thrust = a_used.thrust_scale * (u + ez)
         v = v + DT * (thrust / theta - ez + d)
         lay.update((i + 1) * DT, v + v_noise * rng.standard_normal(3), None,

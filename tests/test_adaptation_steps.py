@@ -9,7 +9,7 @@ import numpy as np
 
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, cusum_step, settings_from_controller
-from cfknode.flight.adaptation_oracle import OracleAdaptation
+from cfknode.flight.adaptation import OracleAdaptation
 
 G = 9.81
 RATE = 400.0
@@ -99,7 +99,7 @@ def test_the_late_oracle_hears_the_true_mass_after_its_delay() -> None:
 
 
 def test_the_lag_bank_picks_the_motor_lag_that_explains_the_climb() -> None:
-    from cfknode.flight.thrust_lag import ThrustLagBank
+    from cfknode.flight.adaptation import ThrustLagBank
 
     rng = np.random.default_rng(3)
     mass, dt = 0.03, 1.0 / RATE
@@ -120,7 +120,7 @@ def test_the_accelerometer_tells_the_lag_where_the_frames_cannot() -> None:
     """A quiet hover's thrust jitter: frame-to-frame velocity misses are noise for every lag, but the specific
     force reads the acting thrust itself (0.3 m/s^2 of noise per sample), so the 150 ms motor is found and a
     15 ms one kept."""
-    from cfknode.flight.thrust_lag import ThrustLagBank
+    from cfknode.flight.adaptation import ThrustLagBank
 
     for true_lag in (0.15, 0.015):
         rng = np.random.default_rng(5)

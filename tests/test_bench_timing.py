@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 
-from cfknode.app.bench.timing import Timing, mpc_closed_loop, swap_latency, synthetic_queue
+from cfknode.app.bench.timing import Timing, layer_tick, mpc_closed_loop, swap_latency, synthetic_queue
 from cfknode.app.config import load_config
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
@@ -31,3 +31,11 @@ def test_closed_loop_rows_for_nominal_and_knode():
 def test_swap_rows():
     row = swap_latency(load_config(), repeats=50)
     assert row.samples == 50 and np.isfinite(row.max_ms)
+
+
+def test_the_fast_layer_has_its_own_row_timing_every_call_of_a_tick():
+    cfg = load_config()
+    mpc = TranslationalMpc(dataclasses.replace(cfg.controller, codegen=False), cfg.vehicle)
+    row = layer_tick(cfg, mpc, seconds=0.1)
+    assert row.samples == 40 and row.name.startswith("fast layer")
+    assert 0.0 < row.median_ms <= row.max_ms

@@ -10,7 +10,7 @@ import numpy as np
 
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, settings_from_controller
-from cfknode.flight.step_fit import StepFit
+from cfknode.flight.adaptation import StepFit
 
 G = 9.81
 RATE = 400.0
@@ -186,7 +186,7 @@ def test_accelerometer_noise_and_offset_raise_no_alarm() -> None:
 
 
 def test_the_step_estimate_from_samples_takes_their_usual_offset_off() -> None:
-    from cfknode.flight.imu_step import ImuStepDetector
+    from cfknode.flight.adaptation import ImuStepDetector
 
     rng = np.random.default_rng(0)
     det = ImuStepDetector()

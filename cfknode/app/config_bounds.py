@@ -101,6 +101,7 @@ BOUNDS: dict[str, Bound] = {
     "controller.adaptation_settings.step_bandwidth_hz": _b(0, 50, "Hz", open_low=True),
     "controller.adaptation_settings.step_thrust_rate": _b(0, 1000, "1/s"),
     "controller.adaptation_settings.step_hold_s": _b(0, 5, "s"),
+    "controller.adaptation_settings.step_max_s": _b(0, 10, "s", open_low=True),
     "controller.adaptation_settings.oracle_delay_s": _b(0, 1, "s"),
     "controller.adaptation_settings.output_bandwidth_hz": _b(0, 50, "Hz"),
     "controller.adaptation_settings.output_bandwidth_xy_hz": _b(0, 50, "Hz"),

@@ -87,6 +87,68 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
     return Timing.of(f"MPC solve, {label}", solve), Timing.of(f"control step, {label}", total)
 
 
+class _TimedLayer:
+    """A fast layer whose per-tick calls are timed: the controller's slot, delegating to ``inner``."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.seconds: list[float] = []
+        self._tick = 0.0
+
+    def __getattr__(self, name: str) -> Any:  # log, summary, off_air, estimate: not timed
+        return getattr(self.inner, name)
+
+    def _timed(self, name: str, *args: Any) -> Any:
+        start = time.perf_counter()
+        out = getattr(self.inner, name)(*args)
+        self._tick += time.perf_counter() - start
+        return out
+
+    def before_solve(self, *args: Any) -> Any:
+        self._tick = 0.0
+        return self._timed("before_solve", *args)
+
+    def f_max(self) -> float:
+        return self._timed("f_max")
+
+    def residual(self, *args: Any) -> Any:
+        return self._timed("residual", *args)
+
+    def shaping(self) -> Any:
+        return self._timed("shaping")
+
+    def after_command(self, *args: Any) -> None:
+        self._timed("after_command", *args)
+        self.seconds.append(self._tick)
+
+
+def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
+    """The fast layer's own share of a tick (every call the controller makes to it) on a 0.5 m circle: a point
+    mass 1.2x heavier than the controller believes, flown on the setpoint's thrust and attitude, so the layer
+    estimates and acts."""
+    from cfknode.flight.adaptation import LoopAdaptation
+    from cfknode.kernel.setpoint import read_setpoint
+
+    ctrl, vehicle = dataclasses.replace(cfg.controller, adaptation="dob"), cfg.vehicle
+    timed = _TimedLayer(LoopAdaptation(ctrl, vehicle, ground_z=0.0))
+    controller = Controller(ctrl, vehicle, solver=mpc, adaptation=timed)  # type: ignore[arg-type]
+    tc = 1.0 / ctrl.rate_hz
+    start = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
+    p, v, q = start.p[0].copy(), start.v[0].copy(), np.array([1.0, 0.0, 0.0, 0.0])
+    for i in range(int(round(seconds / tc))):
+        t = i * tc
+        ref = circle_samples(controller.preview_times(t), 0.5, 0.4, 1.0)
+        command = controller.step(t, StateEstimate(t, p, v, q, 0.0), ref)
+        target = read_setpoint(command.setpoint, vehicle, 0.0, tc)
+        q = np.array(target.quaternion)
+        body_z = np.array([2 * (q[1] * q[3] + q[0] * q[2]), 2 * (q[2] * q[3] - q[0] * q[1]),
+                           1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        v = v + tc * (target.thrust_n / (1.2 * vehicle.mass) * body_z - [0.0, 0.0, vehicle.gravity])
+        p = p + tc * v
+    return Timing.of("fast layer (dob), its calls per tick", np.array(timed.seconds),
+                     note="before_solve + f_max + residual + shaping + after_command")
+
+
 def swap_latency(cfg: Config, repeats: int = 2000) -> Timing:
     """A hot swap is one reference write into the ModelSlot, timed between two ticks' worth of use."""
     slot = ModelSlot(synthetic_queue(cfg.knode.hidden, cfg.knode.queue_size, seed=1), version=1)
@@ -181,6 +243,8 @@ def run_timing_bench(quick: bool = False, progress: Callable[[str], None] = lamb
             slot = ModelSlot(synthetic_queue(cfg.knode.hidden, n_nets), version=1) if n_nets else None
             mpc.reset()
             rows.extend(mpc_closed_loop(c, mpc, slot, seconds / (4 if solver == "ipopt" else 1)))
+    progress("fast layer")
+    rows.append(layer_tick(cfg, TranslationalMpc(cfg.controller, cfg.vehicle), seconds))
     progress("model swap")
     rows.append(swap_latency(cfg))
     progress("training rounds")
@@ -198,6 +262,8 @@ def run_timing_bench(quick: bool = False, progress: Callable[[str], None] = lamb
     }
     by_name = {r.name: r for r in rows}
     ratios = _ratios(by_name)
+    with_layer, without = flights["nominal + adaptation (dob)"], flights["nominal"]
+    ratios["fast layer: lockstep tick median with / without"] = with_layer["tick_median_ms"] / without["tick_median_ms"]
     return {"timings": [dataclasses.asdict(r) for r in rows], "flights": flights, "ratios": ratios}
 
 

@@ -188,7 +188,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "t_col": _num("window length, s"), "error": _str("why the round failed (empty when ok)")},
     ),
     ChannelSpec(
-        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation.py), one per flown tick.",
+        "/adaptation", "cfknode.Adaptation", "Fast adaptation estimate (flight/adaptation/), one per flown tick.",
         {"offset": _vec(3, "acceleration offset added to the model, world, m/s^2"),
          "thrust_scale": _num("estimated mass / nominal mass"), "axis_gain": _vec(2, "x, y tilt effectiveness"),
          "frozen": _bool("not updated this tick (stale mocap, near the ground, landing)"),
@@ -197,7 +197,8 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "stepping": _bool("a vertical step was detected and is tracked at the step bandwidth"),
          "acts": _flags(3, "x, y, vertical: the estimate acts on the axis (else the model alone flies it)"),
          "estimate_offset": _vec(3, "the layer's offset estimate on every axis, acting or not, m/s^2"),
-         "estimate_thrust_scale": _num("the layer's mass estimate, acting or not")},
+         "estimate_thrust_scale": _num("the layer's mass estimate, acting or not"),
+         "tracking_s": _num("s the step being tracked has been tracked (0: none is)")},
     ),
     ChannelSpec(
         "/summary", "cfknode.Summary", "The flight summary (cfknode.app.ui.summary.FlightSummary.to_dict()).",

@@ -19,10 +19,12 @@ import numpy as np
 
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.vehicle import VehicleConfig
-from cfknode.flight.adaptation import AdaptationEstimate, FastAdaptation, settings_from_controller
+from cfknode.flight.adaptation.estimate import AdaptationEstimate
+from cfknode.flight.adaptation.layer import FastAdaptation
+from cfknode.flight.adaptation.settings import settings_from_controller
+from cfknode.flight.adaptation.thrust_lag import ThrustLagBank
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
-from cfknode.flight.thrust_lag import ThrustLagBank
 
 GROUND_MARGIN = 0.1  # m above the floor: below, the ground carries part of the weight
 _RESET_STATES = ("IDLE", "PREFLIGHT", "LANDED", "EMERGENCY")
@@ -37,7 +39,7 @@ class LoopAdaptation:
         self._r = np.zeros(3)  # the model's residual for it
         self._thrust = 0.0  # N, collective thrust sent for it
         # The thrust acting now is the sent one through the motors' lag: configured, or (null) chosen in flight
-        # among the candidates and the vehicle's (flight/thrust_lag.py).
+        # among the candidates and the vehicle's (thrust_lag.py).
         tuning = ctrl.adaptation_settings
         fixed = tuning.thrust_lag_s is not None
         self.lags = ThrustLagBank(() if fixed else tuning.thrust_lag_candidates_s,
@@ -47,6 +49,11 @@ class LoopAdaptation:
         self._version: int | None = None
         self._ground = ground_z  # None: the first estimate's height
         self.saturated_ticks = 0
+        self._zeros: dict[int, ResidualLinearisation] = {}  # per horizon: the zero residual, built once
+        self.stepping_ticks = 0  # ticks flown while a step was tracked
+        self.frozen_ticks = 0  # ticks flown with the estimate frozen (stale pose, a stalled host)
+        self.longest_step_s = 0.0  # s, the longest a step was tracked
+        self._now = 0.0
         self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
         self._imu_t = -float("inf")  # the newest accelerometer sample used
 
@@ -98,7 +105,16 @@ class LoopAdaptation:
                           u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
+        self._count(now)
         return self.layer.applied
+
+    def _count(self, now: float) -> None:
+        """The layer's state over the flight, for the summary: a user sees when it was not learning."""
+        e = self.layer.estimate
+        self._now = now
+        self.stepping_ticks += int(e.stepping)
+        self.frozen_ticks += int(e.frozen)
+        self.longest_step_s = max(self.longest_step_s, self.layer.tracker.tracked_s(now))
 
     def _imu_theta(self, now: float, est: Any) -> tuple[float, float] | None:
         """(time, theta) of an accelerometer sample new since the last tick: the specific force along the body
@@ -127,16 +143,24 @@ class LoopAdaptation:
         mass."""
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
         acting = self.lags.acting()
-        thrust = self._thrust if acting is None else acting
-        return thrust / mass * bz - np.array([0.0, 0.0, self.vehicle.gravity])
+        k = (self._thrust if acting is None else acting) / mass
+        x, y, z = bz.tolist()  # floats: one array built, not three
+        return np.array([k * x, k * y, k * z - self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
-        """The MPC's residual: the model's, with the applied offset added to every stage's constant."""
-        offset = self.layer.applied.offset
+        """The MPC's residual: the model's, with the applied offset added to every stage's constant. No model and
+        no offset (the layer acting on no axis): None, which the MPC flies as a zero residual, with no arrays
+        built for it."""
         if not self.layer.s.enabled:
             return model_residual
+        offset = self.layer.applied.offset
         if model_residual is None:
-            model_residual = ResidualLinearisation.zeros(horizon)
+            if not any(offset.tolist()):
+                return None
+            zero = self._zeros.get(horizon)
+            if zero is None:
+                zero = self._zeros[horizon] = ResidualLinearisation.zeros(horizon)
+            return ResidualLinearisation(np.broadcast_to(offset, zero.c.shape), zero.jx, zero.ju)
         return ResidualLinearisation(model_residual.c + offset, model_residual.jx, model_residual.ju)
 
     def shaping(self) -> CommandShaping:
@@ -172,7 +196,8 @@ class LoopAdaptation:
     def log(self) -> dict[str, Any]:
         e = self.layer.estimate
         return {**self.layer.applied.to_log(), "f_max": self.f_max(), "mode": self.layer.s.mode,
-                "estimate_offset": e.offset, "estimate_thrust_scale": e.thrust_scale}
+                "estimate_offset": e.offset.tolist(), "estimate_thrust_scale": e.thrust_scale,
+                "tracking_s": self.layer.tracker.tracked_s(self._now)}
 
     def summary(self) -> dict[str, Any]:
         e = self.layer.estimate
@@ -181,7 +206,15 @@ class LoopAdaptation:
                 "adaptation_offset_end": [round(float(v), 4) for v in e.offset],
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases,
-                "adaptation_acts_end": list(self.layer.applied.acts)}
+                "adaptation_acts_end": list(self.layer.applied.acts),
+                "adaptation_state": self.state_summary()}
+
+    def state_summary(self) -> dict[str, Any]:
+        """The layer's state over the flight, one summary field: whether it was tracking a step at the end, for
+        how many ticks it tracked one or was frozen, its longest step and how many the cap ended."""
+        return {"stepping_end": self.layer.estimate.stepping, "stepping_ticks": self.stepping_ticks,
+                "frozen_ticks": self.frozen_ticks, "longest_step_s": round(self.longest_step_s, 4),
+                "steps_capped": self.layer.tracker.capped}
 
 
 def measured_position(est: Any) -> np.ndarray:
@@ -196,7 +229,7 @@ def measured_position(est: Any) -> np.ndarray:
 
 def body_z(q: Any) -> np.ndarray:
     """The body z axis in the world from a (w, x, y, z) quaternion."""
-    w, x, y, z = (float(c) for c in q)
+    w, x, y, z = np.asarray(q, dtype=float).tolist()
     return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 

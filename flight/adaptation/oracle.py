@@ -2,7 +2,7 @@
 
 A reference row for the benches, not a controller to fly: the thrust scale is the simulator's true
 mass over the nominal one, read every tick, and the acceleration offset stays 0. It has the
-interface of ``LoopAdaptation`` (``adaptation_loop.py``), so the thrust cone and the Mellinger
+interface of ``LoopAdaptation`` (``loop.py``), so the thrust cone and the Mellinger
 layer see it exactly as they see the adaptive layers; only the estimate differs. Simulation only:
 on hardware there is no true mass to read (``mission.py`` refuses it).
 
@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cfknode.flight.adaptation import AdaptationEstimate
+from cfknode.flight.adaptation.estimate import AdaptationEstimate
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
 from cfknode.flight.settings import ControllerConfig

@@ -44,199 +44,19 @@ within seconds. The cost: an error under about 0.3 % is left to the MPC (1.5 mm 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
-from typing import Literal
+from dataclasses import replace
 
 import numpy as np
 
-from cfknode.flight.imu_step import ImuStepDetector
-from cfknode.flight.step_fit import LAG_FRAMES, StepFit
-
-MODES = ("none", "l1", "dob")
-Mode = Literal["none", "l1", "dob"]
-
-
-@dataclass(frozen=True)
-class AdaptationSettings:
-    mode: Mode
-    bandwidth_hz: float  # low-pass cut-off of the vertical disturbance estimate (dob) / of the l1 output filter
-    bandwidth_xy_hz: float  # the same for x and y: lower, since mocap noise enters there as tilt jitter
-    predictor_gain: float  # 1/s, l1: velocity predictor's error feedback
-    adaptation_gain: float  # 1/s^2, l1: adaptive law gain (the fast inner estimate)
-    thrust_rate: float  # 1/s: how fast the vertical error moves into thrust_scale
-    axis_rate: float  # 1/s: how fast horizontal command-proportional error moves into axis_gain
-    max_offset: float  # m/s^2 per axis
-    thrust_scale_bounds: tuple[float, float]
-    axis_gain_bounds: tuple[float, float]
-    stale_pose_s: float  # s without a fresh mocap pose: frozen
-    rebase_window_s: float  # s of recent ticks the re-base at a model swap averages over
-    thrust_lag_s: float | None = None  # s, first-order lag from the thrust sent to the thrust acting (None: chosen)
-    thrust_lag_candidates_s: tuple[float, ...] = (0.015, 0.04, 0.08, 0.15)  # s, the lags chosen among when None
-    step_threshold: float = 0.0  # alarm level of the vertical step detector (CUSUM of noise-normalised surprise); 0 off
-    step_bandwidth_hz: float = 10.0  # vertical cut-off while a detected step is being tracked
-    step_thrust_rate: float = 400.0  # 1/s, thrust_rate while a detected step is being tracked
-    step_hold_s: float = 0.3  # s after an alarm at the step bandwidth and rate
-    oracle_delay_s: float = 0.0  # s, the oracle reference only (adaptation_oracle.py)
-    output_bandwidth_hz: float = 0.0  # dob: the vertical offset is sigma low-passed again at this cut-off; 0 sigma itself
-    output_bandwidth_xy_hz: float = 0.0  # the same for x and y
-    offset_deadband: float = 0.0  # m/s^2: a horizontal offset well below it is shrunk toward 0 (see shrink); 0 off
-    engage_level: float = 0.0  # m/s^2: an axis acts once its evidence is above this (see engagement); 0: always
-    engage_slow_level: float = math.inf  # m/s^2: ... or once the evidence's slow mean is above this
-    engage_slow_s: float = 2.0  # s, time constant of that mean
-    release_s: float = 1.0  # s with both under half their levels before an axis lets go again
-
-    @property
-    def enabled(self) -> bool:
-        return self.mode != "none"
-
-
-@dataclass(frozen=True)
-class AdaptationEstimate:
-    offset: np.ndarray  # (3,) m/s^2, added to the model's acceleration
-    thrust_scale: float  # estimated mass / nominal mass
-    axis_gain: np.ndarray  # (3,) delivered / commanded horizontal acceleration (z is 1)
-    frozen: bool = False  # no update this tick (stale pose or not flying)
-    saturated: bool = False  # the last applied command was at the thrust clamp or the tilt limit
-    stepping: bool = False  # a vertical step was detected and is being tracked at the step bandwidth
-    acts: tuple[bool, bool, bool] = (True, True, True)  # x, y, vertical: the estimate acts there (see engagement)
-
-    @classmethod
-    def neutral(cls) -> AdaptationEstimate:
-        return cls(np.zeros(3), 1.0, np.ones(3))
-
-    def to_log(self) -> dict[str, object]:
-        return {"offset": self.offset, "thrust_scale": self.thrust_scale, "axis_gain": self.axis_gain[:2],
-                "frozen": self.frozen, "saturated": self.saturated, "stepping": self.stepping, "acts": list(self.acts)}
-
-
-# ---------------------------------------------------------------- pure math
-
-def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarray | float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """First-order disturbance observer: sigma = omega (v - z), z' = a_model + sigma.
-
-    sigma is the low-pass (cut-off omega) of v' - a_model without differentiating v. Returns (z, sigma)."""
-    sigma = omega * (v - z)
-    return z + dt * (a_model + sigma), sigma
-
-
-def l1_step(
-    v_hat: np.ndarray, sigma_hat: np.ndarray, sigma_f: np.ndarray, v: np.ndarray, a_model: np.ndarray,
-    k_pred: float, gamma: float, omega: np.ndarray | float, dt: float, bound: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """L1-style: velocity predictor, gradient adaptive law with projection (a box), low-pass output filter."""
-    err = v_hat - v
-    sigma_hat = np.clip(sigma_hat - dt * gamma * err, -bound, bound)
-    v_hat = v_hat + dt * (a_model + sigma_hat - k_pred * err)
-    sigma_f = sigma_f + np.minimum(1.0, dt * omega) * (sigma_hat - sigma_f)
-    return v_hat, sigma_hat, sigma_f
-
-
-def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
-    """The published offset: ``sigma`` low-passed at ``omega`` (rad/s per axis; inf passes sigma through).
-
-    The observer's sigma = omega (v - z) carries the velocity estimate's noise at gain omega, unfiltered: in
-    quiet flight it is that noise (a 0.5 Hz horizontal sigma was 0.027 m/s^2 rms, 96 % of it above 5 Hz, with a
-    0.999 correlation to omega times the velocity error). Behind this second pole it rolls off as 1/f."""
-    return out + np.minimum(1.0, omega * dt) * (sigma - out)
-
-
-def shrink(offset: np.ndarray, band: float) -> np.ndarray:
-    """``offset`` with what is not clearly above ``band`` (m/s^2) taken out, smoothly: d^3 / (d^2 + band^2).
-
-    Below the band the value falls off as d^3 (a quiet flight's few mm/s^2 of residual dynamics and noise do
-    not reach the MPC); well above it the value passes with a bias of band^2 / d."""
-    if band <= 0.0:
-        return offset
-    sq = offset * offset
-    return offset * sq / (sq + band * band)
-
-
-def thrust_transfer(sigma_z: float, u_z: float, g: float, scale: float, rate: float, dt: float,
-                    bounds: tuple[float, float]) -> float:
-    """New thrust scale, moved toward the one that explains the vertical error ``sigma_z`` at command ``u_z``.
-
-    With thrust from s m, the plant gives a_z + g = (s / theta)(u_z + g); sigma_z = 0 at s = theta."""
-    lift = u_z + g
-    if lift < 0.3 * g:  # too little thrust to tell a mass from an offset
-        return scale
-    target = scale * lift / max(lift + sigma_z, 0.1 * g)
-    step = min(1.0, rate * dt)
-    return float(np.clip(scale + step * (target - scale), *bounds))
-
-
-def axis_transfer(sigma_xy: float, u_xy: float, gain: float, rate: float, dt: float,
-                  bounds: tuple[float, float], u_min: float = 0.5) -> float:
-    """New axis gain from the part of ``sigma_xy`` proportional to the command ``u_xy`` (normalised gradient)."""
-    if abs(u_xy) < u_min:  # no excitation: an offset there is wind, not effectiveness
-        return gain
-    target = gain * (u_xy + sigma_xy) / u_xy
-    step = min(1.0, rate * dt)
-    return float(np.clip(gain + step * (target - gain), *bounds))
-
-
-def sigma_after_transfer(sigma: np.ndarray, u: np.ndarray, g: float, s_old: float, s_new: float) -> np.ndarray:
-    """sigma once the thrust scale changed, so model + layer predicts the same acceleration.
-
-    A larger s sends more thrust for the same u (the plant does more): sigma grows by (ds / s)(u + g e_z + sigma)."""
-    force = u + np.array([0.0, 0.0, g]) + sigma
-    return sigma + (s_new / s_old - 1.0) * force
-
-
-def rebase_offset(offset: np.ndarray, old_acc: np.ndarray, new_acc: np.ndarray, bound: float) -> np.ndarray:
-    """Offset after a model swap: shifted by the mean of (old - new) model acceleration over recent ticks,
-    so the sum model + offset is unchanged on average where the vehicle just flew."""
-    if old_acc.shape[0] == 0:
-        return offset
-    shift = np.mean(old_acc - new_acc, axis=0)
-    if not np.all(np.isfinite(shift)):
-        return offset
-    return np.clip(offset + shift, -bound, bound)
-
-
-def engagement(engaged: np.ndarray, quiet: np.ndarray, evidence: np.ndarray, slow: np.ndarray, level: float,
-               slow_level: float, release_s: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per axis (x, y, vertical): (acts, seconds its evidence has been quiet).
-
-    An axis acts once its evidence (m/s^2 the model gets wrong there) is above ``level``, or the evidence's
-    slow mean ``slow`` above ``slow_level`` (a small error that persists), and lets go after ``release_s`` with
-    both under half their levels; ``level`` 0: every axis always acts. On a plant the model matches, the
-    estimate is the velocity's noise and unmodelled dynamics that no constant cancels: acting on it cost
-    plain MPC 0.1-6 % on quiet plants."""
-    if level <= 0.0:
-        return np.ones(3, dtype=bool), np.zeros(3)
-    size, mean = np.abs(evidence), np.abs(slow)
-    quiet = np.where((size < 0.5 * level) & (mean < 0.5 * slow_level), quiet + dt, 0.0)
-    return (engaged | (size > level) | (mean > slow_level)) & (quiet < release_s), quiet
-
-
-def applied_estimate(estimate: AdaptationEstimate, acts: np.ndarray) -> AdaptationEstimate:
-    """What the controller flies with: ``estimate`` on the axes that act, the model alone on the others
-    (offset 0; thrust scale 1 and axis gain 1 where the vertical / that horizontal axis does not act)."""
-    if acts.all():
-        return estimate
-    gain = np.where(np.array([acts[0], acts[1], True]), estimate.axis_gain, 1.0)
-    return replace(estimate, offset=np.where(acts, estimate.offset, 0.0),
-                   thrust_scale=estimate.thrust_scale if acts[2] else 1.0, axis_gain=gain,
-                   acts=(bool(acts[0]), bool(acts[1]), bool(acts[2])))
-
-
-STEP_DRIFT = 0.5  # CUSUM drift, in noise std: surprise below half a std never accumulates
-NOISE_FRAMES = 100  # mocap frames the surprise noise level averages over (1 s at 100 Hz)
-NOISE_FLOOR = 1e-4  # m/s per frame: below this the surprise is numerics, not noise
-# Alarms in a row are no step: the plant responds otherwise than modelled (a slower motor, say), and the fast
-# estimate would ring on it. An alarm within REARM_S of the last one's end doubles the threshold (up to
-# MAX_THRESHOLD_SCALE); QUIET_RESET_S without an alarm restores it.
-REARM_S = 1.0
-MAX_THRESHOLD_SCALE = 16.0
-QUIET_RESET_S = 10.0
-
-
-def cusum_step(g: tuple[float, float], z: float, drift: float = STEP_DRIFT) -> tuple[float, float]:
-    """Two-sided CUSUM on the normalised surprise ``z``: (upward, downward) sums, each floored at 0."""
-    return max(0.0, g[0] + z - drift), max(0.0, g[1] - z - drift)
-
-
-# ---------------------------------------------------------------- state
+from cfknode.flight.adaptation.engagement import Engagement
+from cfknode.flight.adaptation.estimate import AdaptationEstimate, applied_estimate
+from cfknode.flight.adaptation.imu_step import ImuStepDetector
+from cfknode.flight.adaptation.observer import (
+    axis_transfer, dob_step, l1_step, rebase_offset, sigma_after_transfer, shrink, smooth_step, thrust_transfer,
+)
+from cfknode.flight.adaptation.settings import MODES, AdaptationSettings
+from cfknode.flight.adaptation.step_detect import FrameStepDetector, StepTracker
+from cfknode.flight.adaptation.step_fit import LAG_FRAMES, StepFit
 
 
 class FastAdaptation:
@@ -268,15 +88,22 @@ class FastAdaptation:
         self.imu_steps = 0  # steps the accelerometer raised first
         self._fit = StepFit(rate_hz)
         self._imu = ImuStepDetector()
+        self._frames = FrameStepDetector()
+        self.tracker = StepTracker(settings.step_hold_s, settings.step_max_s)
+        self._engagement = Engagement(settings.engage_level, settings.engage_slow_level, settings.engage_slow_s,
+                                      settings.release_s)
         self.reset()
+
+    @property
+    def acts(self) -> np.ndarray:
+        """x, y, vertical: the axes the estimate acts on (see engagement.py)."""
+        return np.array(self._engagement.acts)
 
     def reset(self) -> None:
         """Back to the model alone (take-off, landing, non-finite input)."""
         self.estimate = AdaptationEstimate.neutral()
-        self._quiet = np.zeros(3)
-        self._slow = np.zeros(3)  # the evidence's slow mean
-        self.acts = np.full(3, self.s.engage_level <= 0.0)  # level 0: every axis always acts
-        self.applied = applied_estimate(self.estimate, self.acts)  # what the controller flies with (see engagement)
+        self._engagement.reset()
+        self.applied = applied_estimate(self.estimate, self._engagement.acts)  # what the controller flies with
         self._sigma = np.zeros(3)
         self._out = np.zeros(3)  # the published offset before its bound and the saturation hold
         self._obs: np.ndarray | None = None  # dob z or l1 v_hat; None: re-synchronise on the next update
@@ -284,22 +111,13 @@ class FastAdaptation:
         self._last_fresh_t = -math.inf
         self._t_prev: float | None = None
         self._buf_len = self._buf_i = 0
-        self._cusum = (0.0, 0.0)
-        self._noise_var = 0.0  # (m/s)^2 per frame: the vertical surprise's noise
-        self._v_prev: float | None = None
-        self._step_until = -math.inf
+        self._frames.reset()
+        self.tracker.reset()
         self._omega_z = float(self.omega[2])  # the vertical bandwidth the observer's state is scaled for
-        self._frames = 0  # mocap frames the detector has seen since the reset
-        self._frame_surprise = 0.0
-        self._t_frame: float | None = None
-        self._run = [[0.0, 0.0], [0.0, 0.0]]  # per CUSUM side: summed surprise (m/s) and its span (s)
         self._jump = 0.0  # m/s^2 added to the vertical estimate at an alarm
-        self._threshold_scale = 1.0
-        self._last_alarm = -math.inf
         self._fit.reset()
         self._onset_hint: float | None = None  # s, the frame before the alarm's run began
         self._fitted: tuple[float, float, bool] | None = None  # (thrust scale, vertical offset, significant)
-        self._frame_dt = 0.01  # s between mocap frames, learned
         self._fitting = False  # heights are given: steps are fitted
         self.fit_lag: int | None = None  # the motor lag (an index of ``thrust_by_lag``) the last significant fit chose
         self._imu.reset()
@@ -325,7 +143,7 @@ class FastAdaptation:
         (imu_step.py). Returns the estimate for this tick."""
         if not self.s.enabled:
             return self.estimate
-        if not (np.all(np.isfinite(v_meas)) and np.all(np.isfinite(u_applied)) and np.all(np.isfinite(model_acc))):
+        if not math.isfinite(float(v_meas.sum() + u_applied.sum() + model_acc.sum())):  # one check: nan, inf
             self.reset()
             return self.estimate
         if pose_fresh:
@@ -337,10 +155,10 @@ class FastAdaptation:
         thrust_sat, tilt_sat = saturated
         if stale or self._obs is None or dt <= 0.0:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement
-            self._v_prev = None
+            self._frames.forget_velocity()
             self._fit.reset()
             self.estimate = replace(self.estimate, frozen=True, saturated=thrust_sat or tilt_sat)
-            self.applied = applied_estimate(self.estimate, self.acts)
+            self.applied = applied_estimate(self.estimate, self._engagement.acts)
             return self.estimate
 
         self._fitting = self.s.mode == "dob" and self.s.step_threshold > 0.0 and x_meas is not None
@@ -355,6 +173,20 @@ class FastAdaptation:
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
             self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
+        omega = self._observe(v_meas, model_acc, dt, stepping)
+        fitted_scale = None
+        if fit is not None:  # the fitted mass, or the one before the onset if the frames show no step; either
+            fitted_scale = fit[0]  # way the vertical offset stays what it was before the onset
+            self._sigma[2] = self._out[2] = fit[1]
+            if self.s.mode == "dob":
+                self._obs[2] = v_meas[2] - fit[1] / omega[2]
+        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
+        self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
+        return self.estimate
+
+    def _observe(self, v_meas: np.ndarray, model_acc: np.ndarray, dt: float, stepping: bool) -> np.ndarray:
+        """The observer's tick (at the step bandwidth vertically while a step is tracked), bounded, and the
+        published offset's low-pass. Returns the bandwidths it ran at."""
         omega = self.omega if not stepping else np.array([self.omega[0], self.omega[1], self.omega_step])
         if self.s.mode == "dob":
             if omega[2] != self._omega_z or self._jump:  # switch: rescale so that sigma continues (+ the jump)
@@ -372,23 +204,17 @@ class FastAdaptation:
         # Anti-windup, first half: the observer is fed the command as flown (clamped thrust, limited tilt), so
         # the gap between what was asked and what the limits let through is never integrated as a disturbance.
         # Projection: the estimate stays in its box (the observer is told, so it does not wind up beyond it).
-        bounded = np.clip(new_sigma, -self.s.max_offset, self.s.max_offset)
-        if np.any(bounded != new_sigma):
+        m = self.s.max_offset
+        bounded = new_sigma
+        if not all(-m <= x <= m for x in new_sigma.tolist()):  # floats: cheaper than numpy on three numbers
+            bounded = np.clip(new_sigma, -m, m)
             self._shift_observer(bounded - new_sigma, omega)
         self._sigma = bounded
         if self.s.mode == "dob":  # a tracked step is published as fast as the observer learns it
             self._out = smooth_step(self._out, bounded, self._omega_out_step if stepping else self.omega_out, dt)
         else:
             self._out = bounded
-        fitted_scale = None
-        if fit is not None:  # the fitted mass, or the one before the onset if the frames show no step; either
-            fitted_scale = fit[0]  # way the vertical offset stays what it was before the onset
-            self._sigma[2] = self._out[2] = fit[1]
-            if self.s.mode == "dob":
-                self._obs[2] = v_meas[2] - fit[1] / omega[2]
-        self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
-        self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
-        return self.estimate
+        return omega
 
     def stalled(self, t: float) -> bool:
         """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The
@@ -397,58 +223,25 @@ class FastAdaptation:
         return self._t_prev is not None and t - self._t_prev > self.s.stale_pose_s
 
     def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool) -> bool:
-        """True while a vertical step (a mass change, a payload) is being tracked fast.
-
-        The surprise is the vertical velocity change that the model plus the current estimate did not predict,
-        summed from one mocap frame to the next (between frames the velocity is a prediction: only frames carry
-        news). Its noise level is learned in flight, so one threshold holds at 0.3 and at 2 mm of mocap noise; a
-        CUSUM of the normalised frame surprise raises the alarm: noise averages out, a step adds up."""
+        """True while a vertical step (a mass change, a payload) is being tracked fast (step_detect.py)."""
         if self.s.step_threshold <= 0.0 or self.s.mode != "dob":
             return False
-        v_prev, self._v_prev = self._v_prev, v_z
-        stepping = t < self._step_until
-        if v_prev is None:
+        tracker, frames = self.tracker, self._frames
+        stepping = tracker.tracking(t)
+        if not frames.observe(t, v_z, a_z + float(self._sigma[2]), dt, fresh):
             return stepping
-        self._frame_surprise += v_z - v_prev - dt * (a_z + float(self._sigma[2]))
-        if not fresh:
-            return stepping
-        surprise, self._frame_surprise = self._frame_surprise, 0.0
-        # The noise level is learned all the time (a step's few large surprises move it little); alarms wait
-        # until it has seen a window of frames.
-        self._frames += 1
-        k = 1.0 / min(self._frames, NOISE_FRAMES)
-        self._noise_var = (1.0 - k) * self._noise_var + k * surprise * surprise
-        if self._frames < NOISE_FRAMES:
-            return stepping
-        std = math.sqrt(max(self._noise_var, NOISE_FLOOR ** 2))
-        before = self._cusum
-        self._cusum = cusum_step(self._cusum, surprise / std)
-        # What each side's run has not been explained: summed surprise and its duration since that sum left 0.
-        for i in (0, 1):
-            if before[i] <= 0.0:
-                self._run[i] = [0.0, 0.0]
-            if self._cusum[i] > 0.0:
-                self._run[i][0] += surprise
-                self._run[i][1] += t - self._t_frame if self._t_frame is not None else 0.0
-        if self._t_frame is not None:
-            self._frame_dt += 0.05 * (min(t - self._t_frame, 0.1) - self._frame_dt)
-        self._t_frame = t
-        side = 0 if self._cusum[0] >= self._cusum[1] else 1
-        if t - self._last_alarm > QUIET_RESET_S:
-            self._threshold_scale = 1.0
-        if self._cusum[side] > self.s.step_threshold * self._threshold_scale and not thrust_sat:
+        side = frames.side()
+        if frames.cusum[side] > tracker.threshold(t, self.s.step_threshold) and not thrust_sat:
             if not stepping:
-                if t - self._step_until < REARM_S:
-                    self._threshold_scale = min(2.0 * self._threshold_scale, MAX_THRESHOLD_SCALE)
-                dv, span = self._run[side]
+                dv, span = frames.run(side)
                 if span > 0.0:  # the run's mean unexplained acceleration joins the estimate at once
                     self._jump = dv / span
+                tracker.start(t)
                 self._start_step(t, t - span, by_imu=False)
                 self.steps += 1
-            if not (stepping and self._vetoed):
-                self._step_until = t + self.s.step_hold_s
-            self._cusum = (0.0, 0.0)
-            self._run = [[0.0, 0.0], [0.0, 0.0]]
+            elif not self._vetoed:
+                tracker.extend(t)
+            frames.clear()
             return True
         return stepping
 
@@ -456,21 +249,19 @@ class FastAdaptation:
         """An accelerometer sample: a step it sees starts the step's tracking at once, from its onset. A hold the
         frames' detector raised does not stop it: that alarm can be a false one just before a real step (a
         0.5x step 76 ms after one went unseen, and the fit searched for its onset at the false alarm's)."""
-        stepping = t < self._step_until and self._imu_step
-        onset = self._imu.sample(t_sample, theta, 1.0 / self.estimate.thrust_scale, stepping)
+        tracking = self.tracker.tracking(t)
+        onset = self._imu.sample(t_sample, theta, 1.0 / self.estimate.thrust_scale, tracking and self._imu_step)
         if onset is None:
             return
-        self.steps += int(t >= self._step_until)  # within a hold of the frames' detector: the same step, now seen
+        self.steps += int(not tracking)  # within a hold of the frames' detector: the same step, now seen
         self.imu_steps += 1
+        self.tracker.restart(t)
         self._start_step(t, onset, by_imu=True)
-        self._step_until = t + self.s.step_hold_s
-        self._cusum = (0.0, 0.0)
-        self._run = [[0.0, 0.0], [0.0, 0.0]]
+        self._frames.clear()
         self._fitted = None  # a fit around another onset says nothing about this one
 
     def _start_step(self, t: float, onset: float, by_imu: bool) -> None:
         """What either detector's alarm sets: the onset the fit searches near, and what the hold starts from."""
-        self._last_alarm = t
         self._onset_hint = onset
         self._fit_frames = 0
         self._vetoed = False
@@ -487,7 +278,7 @@ class FastAdaptation:
             self._imu_step = False
             return None
         if fresh:
-            got = self._fit.estimate(self._onset_hint, self._frame_dt)
+            got = self._fit.estimate(self._onset_hint, self._frames.frame_dt)
             if (got is not None and got.significant and not self._imu_step
                     and self._imu.sees_no_change(self._onset_hint, self._theta_at_alarm)):
                 # The frames' alarm and the accelerometer sees no step: a glitch, or an error that was there
@@ -514,7 +305,7 @@ class FastAdaptation:
                 stepping: bool = False, omega: np.ndarray | None = None, fitted_scale: float | None = None) -> None:
         """Move sigma into the thrust scale, update the axis gains, then publish the remaining offset (bounded)."""
         est, s = self.estimate, self.s
-        scale, gain = est.thrust_scale, est.axis_gain.copy()
+        scale, gain = est.thrust_scale, est.axis_gain
         sigma = self._sigma
         # Moving held error into s is no integration: it changes no prediction (see sigma_after_transfer).
         rate = s.step_thrust_rate if stepping else s.thrust_rate
@@ -523,8 +314,9 @@ class FastAdaptation:
         else:
             new_scale = thrust_transfer(float(self._out[2]), float(u[2]), self.g, scale, rate, dt,
                                         s.thrust_scale_bounds)
-        new_gain = gain.copy()
+        new_gain = gain  # shared, never written: a new array when the gains move
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
+            new_gain = gain.copy()
             for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness
                 new_gain[i] = axis_transfer(float(u[i] - u_cmd[i]), float(u_cmd[i]), gain[i], s.axis_rate, dt,
                                             s.axis_gain_bounds)
@@ -535,9 +327,8 @@ class FastAdaptation:
         offset = self._published()
         # Second half: on a saturated axis the MPC's offset is held; a growing one would only push the plan
         # further into a limit it cannot act beyond (the mass estimate keeps learning from the flown thrust).
-        hold = np.array([tilt_sat, tilt_sat, thrust_sat])
-        if hold.any():
-            offset = np.where(hold, est.offset, offset)
+        if tilt_sat or thrust_sat:
+            offset = np.where(np.array([tilt_sat, tilt_sat, thrust_sat]), est.offset, offset)
         self.estimate = AdaptationEstimate(offset, new_scale, new_gain, frozen=False, saturated=thrust_sat or tilt_sat,
                                            stepping=stepping)
         self._engage(dt)
@@ -545,19 +336,22 @@ class FastAdaptation:
     def _engage(self, dt: float) -> None:
         """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the
         offset plus what the mass estimate moved out of it (its error at hover)."""
-        out = np.clip(self._out, -self.s.max_offset, self.s.max_offset)
-        evidence = np.array([out[0], out[1], out[2] + (self.estimate.thrust_scale - 1.0) * self.g])
-        self._slow = self._slow + min(1.0, dt / self.s.engage_slow_s) * (evidence - self._slow)
-        self.acts, self._quiet = engagement(self.acts, self._quiet, evidence, self._slow, self.s.engage_level,
-                                            self.s.engage_slow_level, self.s.release_s, dt)
-        self.applied = applied_estimate(self.estimate, self.acts)
+        x, y, z = self._bounded_out()
+        acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
+        self.applied = applied_estimate(self.estimate, acts)
 
     def _published(self) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the
         thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag)."""
-        offset = np.clip(self._out, -self.s.max_offset, self.s.max_offset)
-        offset[:2] = shrink(offset[:2], self.s.offset_deadband)
-        return offset
+        x, y, z = self._bounded_out()
+        band = self.s.offset_deadband
+        return np.array([shrink(x, band), shrink(y, band), z])
+
+    def _bounded_out(self) -> tuple[float, float, float]:
+        """The offset before its shrink, bounded (floats: numpy's per-call cost on three numbers is the work)."""
+        m = self.s.max_offset
+        x, y, z = self._out.tolist()
+        return min(max(x, -m), m), min(max(y, -m), m), min(max(z, -m), m)
 
     def _shift_observer(self, d_sigma: np.ndarray, omega: np.ndarray | None = None) -> None:
         """Make the observer report sigma + d_sigma from now on (its prediction continues from there); the
@@ -609,13 +403,4 @@ class FastAdaptation:
         return self.estimate
 
 
-__all__ = ["AdaptationEstimate", "AdaptationSettings", "FastAdaptation", "MODES", "applied_estimate", "axis_transfer",
-           "dob_step", "engagement", "l1_step", "rebase_offset", "shrink", "sigma_after_transfer", "smooth_step",
-           "thrust_transfer"]
-
-
-def settings_from_controller(ctrl: object) -> AdaptationSettings:
-    """``AdaptationSettings`` from ``ControllerConfig`` (``adaptation`` + ``adaptation_settings``)."""
-    tuning = getattr(ctrl, "adaptation_settings")
-    fields = {f: getattr(tuning, f) for f in AdaptationSettings.__dataclass_fields__ if f != "mode"}
-    return AdaptationSettings(mode=getattr(ctrl, "adaptation"), **fields)
+__all__ = ["FastAdaptation"]

@@ -55,9 +55,8 @@ class StepFit:
         self._t = np.zeros(self.n)
         self._z = np.zeros(self.n)
         self._fresh = np.zeros(self.n, dtype=bool)
-        self._pt = np.zeros((self.n, 1))  # per lag: double integral of a_T, the acting thrust over the nominal mass
-        self._vt = np.zeros((self.n, 1))  # its integral
-        self._pr = np.zeros(self.n)  # double integral of the rest of the prediction (-g + model residual)
+        self._a = np.zeros((self.n, 1))  # per lag: a_T, the acting thrust over the nominal mass
+        self._ar = np.zeros(self.n)  # the rest of the prediction (-g + model residual)
         self._theta = np.zeros(self.n)  # the layer's 1 / thrust scale at the tick
         self._sigma = np.zeros(self.n)  # the layer's vertical offset at the tick
         self._lag = np.zeros(self.n, dtype=int)  # the lag the layer flew with at the tick
@@ -66,36 +65,41 @@ class StepFit:
     def reset(self) -> None:
         self._i = 0
         self._len = 0
-        self._acc: tuple[np.ndarray, float] | None = None  # (a_T per lag, a_rest) of the last tick
-        self._vt_run = np.zeros(self._pt.shape[1])
-        self._pt_run = np.zeros(self._pt.shape[1])
-        self._vr_run = self._pr_run = 0.0
 
     def tick(self, t: float, z: float, a_thrust: float | np.ndarray, a_rest: float, theta: float, sigma: float,
              fresh: bool, lag: int = 0) -> None:
         """One tick: height ``z`` (a fresh frame's when ``fresh``), the acting thrust's acceleration over the
         nominal mass ``a_thrust`` (one per candidate lag, or one value), the rest of the predicted vertical
         acceleration ``a_rest`` (-g + model residual), the layer's current ``theta`` (1 / thrust scale) and
-        vertical offset ``sigma``, and the index ``lag`` of the lag the layer flies with."""
-        a_lags = np.atleast_1d(np.asarray(a_thrust, dtype=float))
-        if a_lags.size != self._pt.shape[1]:  # another set of lags: the integrals start over
-            self._pt = np.zeros((self.n, a_lags.size))
-            self._vt = np.zeros((self.n, a_lags.size))
+        vertical offset ``sigma``, and the index ``lag`` of the lag the layer flies with. Only stored: the
+        integrals are built when a fit needs them (a few frames per step), not on every tick."""
+        a_lags = a_thrust if isinstance(a_thrust, np.ndarray) else np.atleast_1d(float(a_thrust))
+        if a_lags.size != self._a.shape[1]:  # another set of lags: the ring starts over
+            self._a = np.zeros((self.n, a_lags.size))
             self.reset()
-        if self._acc is not None:  # the previous tick's acceleration acted until now (zero-order hold)
-            h = min(max(t - self._t[(self._i - 1) % self.n], 0.0), 0.05)
-            a_t, a_r = self._acc
-            self._pt_run = self._pt_run + h * self._vt_run + 0.5 * h * h * a_t
-            self._vt_run = self._vt_run + h * a_t
-            self._pr_run += h * self._vr_run + 0.5 * h * h * a_r
-            self._vr_run += h * a_r
         i = self._i
-        self._t[i], self._z[i], self._fresh[i] = t, z, fresh
-        self._pt[i], self._vt[i], self._pr[i] = self._pt_run, self._vt_run, self._pr_run
+        self._t[i], self._z[i], self._fresh[i], self._ar[i] = t, z, fresh, a_rest
+        self._a[i] = a_lags
         self._theta[i], self._sigma[i], self._lag[i] = theta, sigma, lag
-        self._acc = (a_lags, a_rest)
         self._i = (i + 1) % self.n
         self._len = min(self._len + 1, self.n)
+
+    def _integrals(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(double integral of a_T per lag, its integral, double integral of the rest) at the ring's ticks ``idx``
+        (oldest first), from 0 at the oldest: each tick's acceleration acts until the next (zero-order hold).
+        The fit uses differences from the onset with position and velocity free, so where they start is moot."""
+        h = np.zeros(idx.size)
+        h[1:] = np.clip(np.diff(self._t[idx]), 0.0, 0.05)
+        a_t, a_r = self._a[idx][:-1], self._ar[idx][:-1]
+        vt = np.zeros((idx.size, a_t.shape[1]))
+        vt[1:] = np.cumsum(h[1:, None] * a_t, axis=0)
+        pt = np.zeros_like(vt)
+        pt[1:] = np.cumsum(h[1:, None] * vt[:-1] + 0.5 * (h[1:] ** 2)[:, None] * a_t, axis=0)
+        vr = np.concatenate(([0.0], np.cumsum(h[1:] * a_r)))
+        pr = np.concatenate(([0.0], np.cumsum(h[1:] * vr[:-1] + 0.5 * h[1:] ** 2 * a_r)))
+        out_pt, out_vt, out_pr = np.zeros((self.n, vt.shape[1])), np.zeros((self.n, vt.shape[1])), np.zeros(self.n)
+        out_pt[idx], out_vt[idx], out_pr[idx] = pt, vt, pr
+        return out_pt, out_vt, out_pr
 
     def estimate(self, onset_hint: float, frame_dt: float) -> StepEstimate | None:
         """The step from the frames around ``onset_hint``; None if there are too few frames to fit.
@@ -116,13 +120,14 @@ class StepFit:
         if not np.any(usable):
             return None
         onsets, t0, before = onsets[usable], t0[usable], before[usable]
+        pt_all, vt_all, pr_all = self._integrals(idx)
         w = (np.arange(frames.size)[None, :] >= np.maximum(before - PRE_FRAMES, 0)[:, None]).astype(float)
         tt = self._t[frames][None, :] - t0[:, None]  # (onset, frame)
         theta0, sigma0 = self._theta[onsets], self._sigma[onsets]
         # (onset, frame, lag); the linear parts are absorbed by z0 and v0
-        thrust = (self._pt[frames][None, :, :] - self._pt[onsets][:, None, :]
-                  - self._vt[onsets][:, None, :] * tt[:, :, None])
-        rest = self._pr[frames][None, :] - self._pr[onsets][:, None] + 0.5 * sigma0[:, None] * tt * tt
+        thrust = (pt_all[frames][None, :, :] - pt_all[onsets][:, None, :]
+                  - vt_all[onsets][:, None, :] * tt[:, :, None])
+        rest = pr_all[frames][None, :] - pr_all[onsets][:, None] + 0.5 * sigma0[:, None] * tt * tt
         y = self._z[frames][None, :, None] - theta0[:, None, None] * thrust - rest[:, :, None]
         drive = np.where(tt[:, :, None] > 0.0, thrust, 0.0)
         ones = np.broadcast_to(np.ones_like(tt)[:, :, None], drive.shape)

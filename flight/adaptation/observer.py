@@ -1,0 +1,100 @@
+"""The fast layer's estimator as pure functions: observer, output filter, and the moves between its estimates.
+
+Each takes arrays and returns new ones (no state), so the same law can later adapt other coefficients, such
+as the weights of a learned model's features, beside the constant offset it adapts now.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import numpy as np
+
+FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
+
+
+def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarray | float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """First-order disturbance observer: sigma = omega (v - z), z' = a_model + sigma.
+
+    sigma is the low-pass (cut-off omega) of v' - a_model without differentiating v. Returns (z, sigma)."""
+    sigma = omega * (v - z)
+    return z + dt * (a_model + sigma), sigma
+
+
+def l1_step(
+    v_hat: np.ndarray, sigma_hat: np.ndarray, sigma_f: np.ndarray, v: np.ndarray, a_model: np.ndarray,
+    k_pred: float, gamma: float, omega: np.ndarray | float, dt: float, bound: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """L1-style: velocity predictor, gradient adaptive law with projection (a box), low-pass output filter."""
+    err = v_hat - v
+    sigma_hat = np.clip(sigma_hat - dt * gamma * err, -bound, bound)
+    v_hat = v_hat + dt * (a_model + sigma_hat - k_pred * err)
+    sigma_f = sigma_f + np.minimum(1.0, dt * omega) * (sigma_hat - sigma_f)
+    return v_hat, sigma_hat, sigma_f
+
+
+def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
+    """The published offset: ``sigma`` low-passed at ``omega`` (rad/s per axis; inf passes sigma through).
+
+    The observer's sigma = omega (v - z) carries the velocity estimate's noise at gain omega, unfiltered: in
+    quiet flight it is that noise (a 0.5 Hz horizontal sigma was 0.027 m/s^2 rms, 96 % of it above 5 Hz, with a
+    0.999 correlation to omega times the velocity error). Behind this second pole it rolls off as 1/f."""
+    return out + np.minimum(1.0, omega * dt) * (sigma - out)
+
+
+def shrink(offset: FloatOrArray, band: float) -> FloatOrArray:
+    """``offset`` with what is not clearly above ``band`` (m/s^2) taken out, smoothly: d^3 / (d^2 + band^2).
+
+    Below the band the value falls off as d^3 (a quiet flight's few mm/s^2 of residual dynamics and noise do
+    not reach the MPC); well above it the value passes with a bias of band^2 / d. A float or an array."""
+    if band <= 0.0:
+        return offset
+    sq = offset * offset
+    return offset * sq / (sq + band * band)
+
+
+def thrust_transfer(sigma_z: float, u_z: float, g: float, scale: float, rate: float, dt: float,
+                    bounds: tuple[float, float]) -> float:
+    """New thrust scale, moved toward the one that explains the vertical error ``sigma_z`` at command ``u_z``.
+
+    With thrust from s m, the plant gives a_z + g = (s / theta)(u_z + g); sigma_z = 0 at s = theta."""
+    lift = u_z + g
+    if lift < 0.3 * g:  # too little thrust to tell a mass from an offset
+        return scale
+    target = scale * lift / max(lift + sigma_z, 0.1 * g)
+    step = min(1.0, rate * dt)
+    return float(min(max(scale + step * (target - scale), bounds[0]), bounds[1]))
+
+
+def axis_transfer(sigma_xy: float, u_xy: float, gain: float, rate: float, dt: float,
+                  bounds: tuple[float, float], u_min: float = 0.5) -> float:
+    """New axis gain from the part of ``sigma_xy`` proportional to the command ``u_xy`` (normalised gradient)."""
+    if abs(u_xy) < u_min:  # no excitation: an offset there is wind, not effectiveness
+        return gain
+    target = gain * (u_xy + sigma_xy) / u_xy
+    step = min(1.0, rate * dt)
+    return float(np.clip(gain + step * (target - gain), *bounds))
+
+
+def sigma_after_transfer(sigma: np.ndarray, u: np.ndarray, g: float, s_old: float, s_new: float) -> np.ndarray:
+    """sigma once the thrust scale changed, so model + layer predicts the same acceleration.
+
+    A larger s sends more thrust for the same u (the plant does more): sigma grows by (ds / s)(u + g e_z + sigma)."""
+    force = u + sigma
+    force[2] = (u[2] + g) + sigma[2]  # u + g e_z + sigma, without a fourth array
+    return sigma + (s_new / s_old - 1.0) * force
+
+
+def rebase_offset(offset: np.ndarray, old_acc: np.ndarray, new_acc: np.ndarray, bound: float) -> np.ndarray:
+    """Offset after a model swap: shifted by the mean of (old - new) model acceleration over recent ticks,
+    so the sum model + offset is unchanged on average where the vehicle just flew."""
+    if old_acc.shape[0] == 0:
+        return offset
+    shift = np.mean(old_acc - new_acc, axis=0)
+    if not np.all(np.isfinite(shift)):
+        return offset
+    return np.clip(offset + shift, -bound, bound)
+
+
+__all__ = ["axis_transfer", "dob_step", "l1_step", "rebase_offset", "shrink", "sigma_after_transfer",
+           "smooth_step", "thrust_transfer"]
