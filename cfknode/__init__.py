@@ -8,7 +8,14 @@ elsewhere"):
 - the firmware's side: ``read_setpoint`` (RPYT setpoint -> thrust in newtons and attitude),
   ``AttitudeSetpoint``, ``FirmwareTarget``;
 - references: ``Circle``, ``make_trajectory``, ``RefSamples``; state: ``StateEstimate``;
-- models and learning: ``ModelSlot``, ``online_learning``.
+- the fast layer: ``AdaptationLayer`` (the Protocol a controller's ``adaptation`` slot has),
+  ``AdaptationEstimate`` (its state, on ``Command.layer`` and ``TickInfo.layer``), ``NoAdaptation``;
+- models and learning: ``ModelSlot``, ``online_learning`` / ``OnlineLearning`` (``with`` or
+  ``start``/``stop``), ``OnlineLearner`` (``stats``: ``OnlineStats``, ``rounds``: ``RoundRecord``,
+  ``swaps``: ``SwapEvent``, ``summary_fields()``);
+- protocols of what one plugs in: ``Solver``, ``Log`` (``write(topic, t, msg)``), ``TickObserver``.
+
+See docs/api.md.
 
 Names load on first use, so ``import cfknode`` stays cheap for the command line.
 """
@@ -21,6 +28,17 @@ from typing import Any
 from cfknode.kernel.version import __version__
 
 _EXPORTS = {
+    "AdaptationEstimate": "cfknode.flight.adaptation",
+    "AdaptationLayer": "cfknode.flight.adaptation",
+    "Log": "cfknode.flight.loop",
+    "NoAdaptation": "cfknode.flight.adaptation",
+    "OnlineLearner": "cfknode.flight.learning.learner",
+    "OnlineLearning": "cfknode.app.learning",
+    "OnlineStats": "cfknode.flight.learning.records",
+    "RoundRecord": "cfknode.flight.learning.records",
+    "Solver": "cfknode.flight.controller",
+    "SwapEvent": "cfknode.flight.learning.records",
+    "TickObserver": "cfknode.flight.controller",
     "AttitudeSetpoint": "cfknode.kernel.setpoint",
     "Circle": "cfknode.flight.trajectory",
     "Command": "cfknode.flight.controller",

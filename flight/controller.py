@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from cfknode.flight.adaptation import AdaptationEstimate, AdaptationLayer, LoopAdaptation, OracleAdaptation
+from cfknode.flight.adaptation import GROUND_MARGIN, AdaptationEstimate, AdaptationLayer, LoopAdaptation, OracleAdaptation
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import acc_to_setpoint, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
@@ -27,6 +28,9 @@ from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.reference import RefSamples
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.kernel.vehicle import VehicleConfig
+
+
+GUESS_WARN_Z = 0.15  # m: a first state higher than this above z = 0 is taken as a start in the air
 
 
 class State(Protocol):
@@ -137,6 +141,19 @@ class Controller:
         self._x_pred: np.ndarray | None = None
         self._u_pred: np.ndarray | None = None
         self._pending: TickInfo | None = None
+        self._ground_z = ground_z
+
+    @property
+    def ground_z(self) -> float | None:
+        """The floor (m): as given, or the first state's height once one was seen; None before that."""
+        return self._ground_z
+
+    def _guess_ground(self, z: float) -> None:
+        self._ground_z = z
+        if z > GUESS_WARN_Z:  # started in the air: the guessed floor is very likely wrong
+            warnings.warn(f"Controller: no ground_z given, so the floor is taken as the first state's height "
+                          f"(z = {z:.2f} m); the fast layer does not learn within {GROUND_MARGIN} m of it. "
+                          "Pass ground_z=<floor height> for a vehicle that starts in the air.", stacklevel=3)
 
     @property
     def predicted_positions(self) -> np.ndarray | None:
@@ -166,6 +183,8 @@ class Controller:
         (the supervisor's state: "LAND" freezes the layer, "IDLE"/"LANDED"/"EMERGENCY" reset it).
         """
         start = time.perf_counter()
+        if self._ground_z is None:
+            self._guess_ground(float(state.p[2]))
         if self._pending is not None:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))

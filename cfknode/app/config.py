@@ -246,12 +246,24 @@ def default_dict() -> dict[str, Any]:
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
-    """Defaults, then the YAML file at ``path``, then dotted-key ``overrides``."""
+    """Defaults, then the YAML file at ``path``, then dotted-key ``overrides``.
+
+    The geometric controller flies without the fast layer unless the file or an override names
+    ``controller.adaptation``: the default layer is the MPC's (it feeds the MPC's residual), and
+    ``--controller geometric`` means the firmware's Mellinger controller alone.
+    """
     data = default_dict()
+    asked = False
     if path is not None:
-        data = _merge(data, read_yaml_mapping(Path(path)), prefix="")
+        user = read_yaml_mapping(Path(path))
+        asked = isinstance(user.get("controller"), Mapping) and "adaptation" in user["controller"]
+        data = _merge(data, user, prefix="")
     for key, value in (overrides or {}).items():
+        asked = asked or key == "controller.adaptation" or (key == "controller" and isinstance(value, Mapping)
+                                                            and "adaptation" in value)
         data = _merge(data, _nest(key, value), prefix="")
+    if not asked and isinstance(data.get("controller"), Mapping) and data["controller"].get("kind") == "geometric":
+        data = _merge(data, _nest("controller.adaptation", "none"), prefix="")
     return build_config(data)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import dataclasses
+import warnings
 from typing import Any, Iterator
 
 from cfknode.app.config import Config, ConfigError
@@ -198,7 +199,10 @@ class OnlineLearning:
             controller.model = ModelSlot(None, version=0)
         stack = contextlib.ExitStack()
         trainer = stack.enter_context(start_trainer(self._cfg))
-        ground_z = self._ground_z if self._ground_z is not None else getattr(controller, "ground_z", None)
+        ground_z = self._ground_z if self._ground_z is not None else controller.ground_z
+        if ground_z is None:
+            warnings.warn("online_learning: no ground_z given and the controller has not seen a state yet, so "
+                          "windows are learned at any height; pass ground_z=<floor height>", stacklevel=3)
         self.learner = OnlineLearner(learner_settings(self._cfg, self._lockstep, ground_z, self._speed),
                                      controller.model, trainer, self._log if self._log is not None else _NoLog())
         controller.observers.append(self.learner)
