@@ -21,12 +21,9 @@ from typing import Sequence  # noqa: E402
 from cfknode import __version__  # noqa: E402
 from cfknode.app.cli_logging import command_logging  # noqa: E402
 from cfknode.app.config import ConfigError  # noqa: E402
+from cfknode.app.errors import UsageError  # noqa: E402,F401 (re-exported)
 
 COMMANDS: tuple[str, ...] = ("fly", "train", "plot", "replay", "calibrate", "estop", "bench")
-
-
-class UsageError(ValueError):
-    """Bad command-line input that argparse cannot catch; exit status 2."""
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 from cfknode.app.config import Config, load_config, parse_override
 
 HELP = "fly a mission (default: the simulated 0.5 m circle)"

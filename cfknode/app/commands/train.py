@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 from cfknode.app.commands.fly import add_config_arguments, config_from_args
 
 HELP = "train a KNODE model from flight logs (offline KNODE-MPC)"
