@@ -70,6 +70,8 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
 
 def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
     """Print a fleet's result (one line per drone, the fleet's events, closest approach, radios)."""
+    from cfknode.app.ui.summary import drone_row
+
     out = sys.stderr if args.json else sys.stdout
     if args.json:
         print(json.dumps({
@@ -80,12 +82,10 @@ def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
             "drones": {d.name: {"uri": d.uri, "outcome": d.outcome.message, **d.summary.to_dict()}
                        for d in result.drones},
         }, default=float))
-    for d in result.drones:
+    verbose = getattr(args, "verbose", False)
+    for d in result.drones:  # one row each; the URI only with --verbose, so a row fits 80 columns
         s = d.summary
-        models = s.extra.get("models_accepted")
-        learned = f", models accepted {models}" if models is not None else ""
-        print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
-              f"p99 {s.compute_p99_ms:.2f} ms{learned}: {d.outcome.message}", file=out)
+        print(drone_row(f"{d.name} {d.uri}" if verbose else d.name, s, d.outcome.message), file=out)
         for path in s.extra.get("logs", ()):  # --executor ray: each drone's own logs, on its node
             print(f"{d.name} log {path} (node {str(s.extra.get('ray_node', ''))[:12]})", file=out)
     for event in result.events:
