@@ -16,6 +16,7 @@ from cfknode.app.ui.summary import (
     brief_rows,
     compute_summary,
     drone_row,
+    render,
     render_brief,
     render_summary,
     summary_from_dict,
@@ -197,6 +198,17 @@ def test_render_brief_prints_the_rows_as_lines() -> None:
     s = flight()
     render_brief(s, console)
     assert console.export_text().splitlines() == brief_rows(s)
+
+
+def test_verbose_prints_every_row_and_the_default_the_brief_ones() -> None:
+    s = flight(extra={"adaptation_resets": 2, "fallback_reasons": {}})
+    brief, full = Console(record=True, width=80, color_system=None), Console(record=True, width=160, color_system=None)
+    render(s, brief)
+    render(s, full, verbose=True)
+    assert brief.export_text().splitlines() == brief_rows(s)
+    every = full.export_text()
+    for text in ("MSE x / y / z", "whole flight", "MPC solve median / p99", "adaptation_resets", "fallback_reasons"):
+        assert text in every, text
 
 
 def test_a_fleet_drone_is_one_row() -> None:

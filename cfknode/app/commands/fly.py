@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from cfknode.app.ui.dashboard import should_show_dashboard
-    from cfknode.app.ui.summary import render_brief, render_summary, summary_to_json
+    from cfknode.app.ui.summary import render, summary_to_json
     from cfknode.app.mission import MissionError, run_flight
     from cfknode.safety.process_signals import ProcessSignals
 
@@ -187,10 +187,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if args.json:
         print(summary_to_json(result.summary))
-    elif args.verbose:  # every row; by default the few a person reads at a glance
-        render_summary(result.summary, console)
-    else:
-        render_brief(result.summary, console)
+    else:  # by default the rows a person reads at a glance; --verbose every row
+        render(result.summary, console, verbose=getattr(args, "verbose", False))
     # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
     print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
     for error in result.outcome.errors:  # the tracebacks are in the log, never on the terminal

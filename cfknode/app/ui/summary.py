@@ -28,6 +28,7 @@ __all__ = [
     "compute_summary",
     "brief_rows",
     "drone_row",
+    "render",
     "render_brief",
     "render_summary",
     "summary_from_dict",
@@ -329,6 +330,11 @@ def brief_rows(summary: FlightSummary) -> list[str]:
         rows.append(_row("attention", attention))
     rows.append(_row("log", str(s.log_path)))
     return rows
+
+
+def render(summary: FlightSummary, console: Console, verbose: bool = False) -> None:
+    """What ``cfknode fly`` prints: the rows at a glance, or with ``verbose`` every row."""
+    (render_summary if verbose else render_brief)(summary, console)
 
 
 def render_brief(summary: FlightSummary, console: Console) -> None:
