@@ -35,7 +35,8 @@ def _parser() -> argparse.ArgumentParser:
         command = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(command)
         command.add_argument("-v", "--verbose", action="store_true",
-                             help="show the libraries' log output (cflib, ...) as well as cfknode's")
+                             help="show the libraries' log output (cflib, ...) as well as cfknode's, "
+                                  "and every row of a flight's summary")
     return parser
 
 
