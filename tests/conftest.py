@@ -3,7 +3,8 @@
 Each test gets the marks its file (or the test itself) has in ``speeds.SPEEDS``, so
 ``python -m pytest -m "not slow"`` is the fast run (docs/testing.md). Each file is one
 ``xdist_group``, so pytest-xdist keeps a file's module fixtures (one flight, shared by its
-tests) on one worker; files that share something outside the process share a group.
+tests) on one worker; files that share something outside the process share a group. Each
+worker has its own runtime and cache directories.
 """
 
 from __future__ import annotations
@@ -26,14 +27,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _own_runtime_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A runtime directory per test process, so two workers' flights never share an e-stop mailbox.
+def _own_runtime_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A runtime and a cache directory per test process (each xdist worker), which subprocesses inherit.
 
-    The default mailbox is ``$XDG_RUNTIME_DIR/cfknode``; a flight claims its robot's name there, and
-    a second flight of the same robot in the same directory is refused. Subprocesses inherit it.
+    Two workers' flights then never share the default e-stop mailbox (``$XDG_RUNTIME_DIR/cfknode``,
+    where a flight claims its robot's name) nor write one compiled MPC library into the shared
+    code-generation cache (``$XDG_CACHE_HOME/cfknode``) at once.
     """
-    runtime = tmp_path_factory.mktemp("runtime")
-    runtime.chmod(0o700)
+    root = tmp_path_factory.mktemp("xdg")
+    for name in ("runtime", "cache"):
+        (root / name).mkdir(mode=0o700)
     with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("XDG_RUNTIME_DIR", str(runtime))
-        yield runtime
+        patch.setenv("XDG_RUNTIME_DIR", str(root / "runtime"))
+        patch.setenv("XDG_CACHE_HOME", str(root / "cache"))
+        yield root
