@@ -99,10 +99,10 @@ def test_cli_fly_ends_with_a_summary_read_at_a_glance(tmp_path, monkeypatch, cap
     monkeypatch.chdir(tmp_path)
     assert main(["fly", "--headless", "--log-dir", "flights", *[f"--set={k}={v}" for k, v in SHORT.items()]]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0].startswith("cfknode fly:") and lines[-1] == "cfknode: flight complete: landed"
+    assert lines[0].startswith("cfknode fly: sim, circle") and lines[-1] == "cfknode: flight complete: landed"
     summary = lines[1:]
     assert len(summary) <= 12, summary
-    assert max(map(len, summary)) <= 80, summary
+    assert max(map(len, lines)) <= 80, lines
     assert any("mass estimate" in line for line in summary)
 
 

@@ -172,9 +172,10 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=args.json)
     t = cfg.trajectory
     if not args.json:
+        # One line within 80 columns, as the summary below it.
         console.print(
-            f"[bold]cfknode fly[/]: {cfg.backend} backend, {t.kind} r={t.radius} m at {t.speed} m/s for "
-            f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
+            f"[bold]cfknode fly[/]: {cfg.backend}, {t.kind} r={t.radius} m at {t.speed} m/s for "
+            f"{t.duration} s, {cfg.controller.kind} ({cfg.controller.solver})"
         )
     show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
     # SIGTERM and SIGHUP end a flight as Ctrl-C does (land, then stop), never the process at once.
