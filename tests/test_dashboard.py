@@ -253,7 +253,7 @@ def _expect_panels(child: pexpect.spawn) -> None:
 
 def test_demo_flight_draws_the_dashboard_in_a_pseudo_terminal(tmp_path):
     child = pexpect.spawn(
-        sys.executable, ["-m", "cfknode.app.ui.dashboard", "--demo", "--log-dir", str(tmp_path),
+        sys.executable, ["-m", "cfknode.app.commands.dashboard_demo", "--demo", "--log-dir", str(tmp_path),
                          "--set", "trajectory.duration=5.0"],
         dimensions=(40, 120), encoding="utf-8", timeout=120, cwd=str(tmp_path), env={**os.environ, "TERM": "xterm"},
     )

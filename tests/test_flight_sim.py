@@ -92,6 +92,20 @@ def test_cli_fly_json_end_to_end(tmp_path):
     assert summary["log_path"].startswith(str(tmp_path))
 
 
+def test_cli_fly_ends_with_a_summary_read_at_a_glance(tmp_path, monkeypatch, capsys):
+    from cfknode.app.cli import main
+
+    # The default mission, shorter on the circle (the rows depend on its parts, not its length).
+    monkeypatch.chdir(tmp_path)
+    assert main(["fly", "--headless", "--log-dir", "flights", *[f"--set={k}={v}" for k, v in SHORT.items()]]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("cfknode fly: sim, circle") and lines[-1] == "cfknode: flight complete: landed"
+    summary = lines[1:]
+    assert len(summary) <= 12, summary
+    assert max(map(len, lines)) <= 80, lines
+    assert any("mass estimate" in line for line in summary)
+
+
 def test_mission_hands_the_firmware_back_landed_not_locked(circle):
     assert circle.summary.extra["firmware_after_shutdown"] == "landed"
 

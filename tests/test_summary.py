@@ -13,7 +13,11 @@ from rich.console import Console
 from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.app.ui.summary import (
     FlightSummary,
+    brief_rows,
     compute_summary,
+    drone_row,
+    render,
+    render_brief,
     render_summary,
     summary_from_dict,
     summary_from_log,
@@ -160,6 +164,56 @@ def test_render_summary_shows_the_numbers() -> None:
     out = console.export_text()
     for text in ("Flight summary", "0.04667", "0.01 / 0.04 / 0.09", "5 / 4001", "0.400", "4", "x.mcap", "controller"):
         assert text in out, text
+
+
+def test_brief_rows_carry_what_a_person_checks_within_80_columns() -> None:
+    s = flight(missed=np.arange(4001) % 1000 == 0,
+               extra={"lockstep": True, "adaptation": "dob", "adaptation_thrust_scale_end": 1.2987,
+                      "models_accepted": 3, "models_trained": 5, "fallback_ticks": 7})
+    rows = brief_rows(s)
+    assert len(rows) <= 11 and all(len(row) <= 80 for row in rows)
+    text = "\n".join(rows)
+    for fragment in ("MSE 4.667e-02 m^2", "max error 374.2 mm", "median 0.400 ms, p99 0.400 ms",
+                     "5 of 4001 deadlines", "x real time, lockstep", "3 accepted of 5 trained",
+                     "1.299 x nominal (fast layer, dob)", "7 fallback ticks", "x.mcap"):
+        assert fragment in text, fragment
+    # Internals stay in --json and --verbose.
+    assert "fallback_reasons" not in text and "MSE x / y / z" not in text
+
+
+def test_brief_rows_leave_out_what_a_flight_did_not_have() -> None:
+    rows = brief_rows(flight())
+    assert [row.split()[0] for row in rows[1:]] == ["tracking", "tick", "missed", "speed", "log"]
+
+
+def test_brief_rows_fit_every_mass_step_in_one_row() -> None:
+    steps = [(float(t), 1.3) for t in (3.0, 4.0, 5.0, 6.0)]
+    rows = brief_rows(flight(steps=steps))
+    (row,) = [row for row in rows if "mass steps" in row]
+    assert len(row) <= 80 and "(+2 more)" in row
+
+
+def test_render_brief_prints_the_rows_as_lines() -> None:
+    console = Console(record=True, width=80, color_system=None)
+    s = flight()
+    render_brief(s, console)
+    assert console.export_text().splitlines() == brief_rows(s)
+
+
+def test_verbose_prints_every_row_and_the_default_the_brief_ones() -> None:
+    s = flight(extra={"adaptation_resets": 2, "fallback_reasons": {}})
+    brief, full = Console(record=True, width=80, color_system=None), Console(record=True, width=160, color_system=None)
+    render(s, brief)
+    render(s, full, verbose=True)
+    assert brief.export_text().splitlines() == brief_rows(s)
+    every = full.export_text()
+    for text in ("MSE x / y / z", "whole flight", "MPC solve median / p99", "adaptation_resets", "fallback_reasons"):
+        assert text in every, text
+
+
+def test_a_fleet_drone_is_one_row() -> None:
+    row = drone_row("cf1", flight(extra={"models_accepted": 2}), "flight complete: landed")
+    assert row == "cf1: MSE 4.67e-02 m^2, tick 0.40/0.40 ms, 2 models, flight complete: landed"
 
 
 def test_summary_from_log_matches_the_arrays(tmp_path: Path) -> None:

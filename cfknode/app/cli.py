@@ -22,12 +22,9 @@ from cfknode import __version__  # noqa: E402
 from cfknode.app.cli_logging import command_logging  # noqa: E402
 from cfknode.app.config import ConfigError  # noqa: E402
 from cfknode.app.logs.format import LogError  # noqa: E402
+from cfknode.app.errors import UsageError  # noqa: E402,F401 (re-exported)
 
 COMMANDS: tuple[str, ...] = ("fly", "train", "model", "plot", "replay", "calibrate", "estop", "bench")
-
-
-class UsageError(ValueError):
-    """Bad command-line input that argparse cannot catch; exit status 2."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -39,7 +36,8 @@ def _parser() -> argparse.ArgumentParser:
         command = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(command)
         command.add_argument("-v", "--verbose", action="store_true",
-                             help="show the libraries' log output (cflib, ...) as well as cfknode's")
+                             help="show the libraries' log output (cflib, ...) as well as cfknode's, "
+                                  "and every row of a flight's summary")
     return parser
 
 

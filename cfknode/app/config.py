@@ -1,8 +1,8 @@
-"""Configuration: frozen dataclasses, filled from default.yaml, a user file and CLI overrides.
+"""Configuration: the settings dataclasses, filled from default.yaml, a user file and CLI overrides.
 
 The defaults live only in ``config/default.yaml`` (with their sources); the dataclasses
-are the schema. A wrong key, a wrong type or a missing file raises ``ConfigError`` whose
-one-line message names the key or the file.
+(``cfknode.app.settings`` and each layer's ``settings``) are the schema. A wrong key, a wrong
+type or a missing file raises ``ConfigError`` whose one-line message names the key or the file.
 """
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import dataclasses
 import re
 import types
 import typing
-from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
 import yaml
 
-from cfknode.app.fleet.settings import FleetConfig
+from cfknode.app.config_bounds import check_bounds
+from cfknode.app.settings import Config, DashboardConfig, HardwareConfig, LogConfig, OnlineConfig, RadioConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
 from cfknode.kernel.bounded_input import QUOTE_CHARS, load_yaml, quote, read_regular
 from cfknode.kernel.errors import ConfigError
@@ -33,105 +33,6 @@ __all__ = [
     "SafetyConfig", "SimConfig", "TrainingConfig", "TrajectoryConfig", "Vec3", "VehicleConfig", "build_config",
     "default_dict", "load_config", "parse_override", "read_yaml_mapping",
 ]
-
-
-@dataclass(frozen=True)
-class OnlineConfig:
-    enabled: bool
-    t_col: float
-    epochs: int
-    method: Literal["rk4", "euler", "dopri5"]
-    lr: float
-    weight_decay: float
-    warm_start: bool
-    replay_windows: int
-    paper_lockstep: bool
-    gate: bool
-    gate_min_pairs: int
-    gate_control_gain: tuple[float, float]
-    gate_max_velocity_gain: float
-    gate_max_cross_gain: float
-    gate_layer_margin: float
-    gate_layer_steps: int
-    gate_layer_min_gain: float
-    trainer_timeout: float
-    max_restarts: int
-    start_time: float
-    rollback_ticks: int
-    rollback_fallbacks: int
-    monitor: bool
-    monitor_window_s: float
-    monitor_every_ticks: int
-    monitor_margin: float
-    monitor_floor: float
-    latency: Literal["cpu", "fixed", "wall"]
-    fixed_latency_s: float
-    latency_quantum_s: float
-    inject: FaultInjection
-
-
-@dataclass(frozen=True)
-class RadioConfig:
-    uri: str
-    tx_rate_hz: float
-    imu_log: bool = True  # the accelerometer log block (docs/hardware.md#imu-log)
-    stale_hold_slots: int = 4  # TX slots resending one setpoint before the radio holds level, descending
-    stale_stop_s: float = 1.0  # s: a setpoint this old (and held) makes the radio stop the motors
-
-
-@dataclass(frozen=True)
-class LogConfig:
-    dir: str
-
-
-@dataclass(frozen=True)
-class DashboardConfig:
-    enabled: bool
-    refresh_hz: float
-
-
-@dataclass(frozen=True)
-class HardwareConfig:
-    robot: str
-    robots_file: str
-    mocap_type: Literal["vicon", "optitrack", "qualisys", "vrpn", "mock"]
-    mocap_host: str
-    mocap_connect_timeout: float
-    mocap_rate_hz: float
-    radio_connect_timeout: float
-    preflight_settle: float
-    preflight_position_tolerance: float
-    preflight_max_tilt_deg: float
-    force: bool
-    extpos_std: float
-    extquat_std: float
-    heartbeat_hz: float
-    reboot_after_heartbeat: bool
-    telemetry_hz: float
-    rw_cache: str
-
-
-@dataclass(frozen=True)
-class Config:
-    backend: Literal["sim", "cf"]
-    vehicle: VehicleConfig
-    controller: ControllerConfig
-    estimator: EstimatorConfig
-    trajectory: TrajectoryConfig
-    sim: SimConfig
-    knode: KnodeConfig
-    training: TrainingConfig
-    online: OnlineConfig
-    radio: RadioConfig
-    log: LogConfig
-    dashboard: DashboardConfig
-    safety: SafetyConfig
-    faults: FaultsConfig
-    hardware: HardwareConfig
-    fleet: FleetConfig
-
-    def to_dict(self) -> dict[str, Any]:
-        return _plain(dataclasses.asdict(self))
 
 
 # Checks that a type alone cannot express: (key, predicate, what it must be).
@@ -269,8 +170,6 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
 
 def build_config(data: Mapping[str, Any]) -> Config:
     cfg = _build(Config, data, "")
-    from cfknode.app.config_bounds import check_bounds  # imported here: it imports this module
-
     check_bounds(cfg)
     for key, ok, what in _RULES:
         value = _get(cfg, key)
@@ -411,11 +310,3 @@ def _get(cfg: Any, dotted: str) -> Any:
     for part in dotted.split("."):
         cfg = getattr(cfg, part)
     return cfg
-
-
-def _plain(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    return obj

@@ -17,7 +17,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
-from cfknode.app.config import Config, ConfigError
+from cfknode.app.settings import Config
+from cfknode.kernel.errors import ConfigError
 
 INF = math.inf
 

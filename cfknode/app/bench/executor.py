@@ -41,7 +41,7 @@ THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 def _usage_error(message: str) -> Exception:
     # Imported here: spawned workers import this module for their initializer, before numpy
     # loads, and the command line's module would load it.
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     return UsageError(message)
 

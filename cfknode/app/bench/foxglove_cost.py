@@ -8,7 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from cfknode.app.bench.timing import Timing
 from cfknode.app.foxglove.live import LiveServer
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink
 from cfknode.app.logs.writer import FlightLog
@@ -34,11 +33,12 @@ def _writes(ticks: int, live: Any) -> tuple[np.ndarray, np.ndarray]:
     return plain, tapped
 
 
-def foxglove_rows(ticks: int = 8000) -> list[Timing]:
-    """Rows for ``bench timing``: a plain ``/state`` write, the same through the view, and with the live server."""
+def foxglove_samples(ticks: int = 8000) -> list[tuple[str, np.ndarray, str]]:
+    """``bench timing``'s rows (name, seconds, note): a plain ``/state`` write, the same through the
+    view, and with the live server up."""
     plain, tapped = _writes(ticks, None)
     with LiveServer(port=0) as live:
         _, served = _writes(ticks, live)
-    return [Timing.of("/state write, log only", plain),
-            Timing.of("/state write + Foxglove channels in the log", tapped, "50 Hz pose, 10 Hz horizon"),
-            Timing.of("/state write + Foxglove log and live server", served, "no client connected")]
+    return [("/state write, log only", plain, ""),
+            ("/state write + Foxglove channels in the log", tapped, "50 Hz pose, 10 Hz horizon"),
+            ("/state write + Foxglove log and live server", served, "no client connected")]

@@ -152,7 +152,7 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
 
 def parse_cells(text: str | None) -> tuple[tuple[float, float], ...]:
     """``--cells 2:0.8,3:1.0`` -> those of the paper's cells (None: all nine); anything else is a usage error."""
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     if not text:
         return CELLS

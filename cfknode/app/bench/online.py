@@ -213,7 +213,7 @@ def add_online_arguments(p: Any) -> None:
 def run_online(args: Any, version: str) -> int:
     from rich.console import Console
 
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")

@@ -349,7 +349,7 @@ def add_robustness_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _select(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     if not text:
         return known
@@ -370,7 +370,7 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
 
     from rich.console import Console
 
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     from cfknode.app.bench.executor import ExecutorSettings, run_ordered
 

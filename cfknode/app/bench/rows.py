@@ -41,7 +41,7 @@ def add_latency_arguments(p: Any) -> None:
 
 
 def check_latency_arguments(args: Any) -> None:
-    from cfknode.app.cli import UsageError
+    from cfknode.app.errors import UsageError
 
     if not 0.0 <= args.fixed_latency <= 60.0:
         raise UsageError(f"--fixed-latency must be in [0, 60] s, got {args.fixed_latency}")

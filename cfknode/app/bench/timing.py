@@ -251,9 +251,9 @@ def run_timing_bench(quick: bool = False, progress: Callable[[str], None] = lamb
     rows.append(training_round(cfg, t_col=0.5, epochs=60, rounds=3 if quick else 6))
     rows.append(training_round(cfg, t_col=0.15, epochs=80, rounds=3 if quick else 6))
     progress("Foxglove view")
-    from cfknode.app.bench.foxglove_cost import foxglove_rows
+    from cfknode.app.bench.foxglove_cost import foxglove_samples
 
-    rows.extend(foxglove_rows(2000 if quick else 8000))
+    rows.extend(Timing.of(*row) for row in foxglove_samples(2000 if quick else 8000))
     progress("lockstep flights")
     flights = {
         "nominal": lockstep_flight(cfg, None, 4.0 if quick else 20.0),

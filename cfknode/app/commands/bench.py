@@ -17,7 +17,7 @@ import subprocess
 from pathlib import Path
 from typing import Callable
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 
 HELP = ("benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures the real-time parts, "
         "'online' flies the online-learning acceptance protocol")

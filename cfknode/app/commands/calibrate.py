@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 from cfknode.app.commands.fly import FLAGS, add_config_arguments, add_hardware_arguments, config_from_args
 
 HELP = "hover briefly and write the robot's hover thrust command and mass to the robots file"

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import re
 import sys
 from pathlib import Path
 from typing import Any
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 from cfknode.app.config import Config, load_config, parse_override
 
 HELP = "fly a mission (default: the simulated 0.5 m circle)"
@@ -168,21 +167,24 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from cfknode.app.ui.dashboard import should_show_dashboard
-    from cfknode.app.ui.summary import render_summary, summary_to_json
+    from cfknode.app.ui.summary import render, summary_to_json
     from cfknode.app.mission import MissionError, run_flight
     from cfknode.safety.process_signals import ProcessSignals
 
     console = Console(stderr=args.json)
     t = cfg.trajectory
     if not args.json:
+        # One line within 80 columns, as the summary below it.
         console.print(
-            f"[bold]cfknode fly[/]: {cfg.backend} backend, {t.kind} r={t.radius} m at {t.speed} m/s for "
-            f"{t.duration} s, controller {cfg.controller.kind} ({cfg.controller.solver})"
+            f"[bold]cfknode fly[/]: {cfg.backend}, {t.kind} r={t.radius} m at {t.speed} m/s for "
+            f"{t.duration} s, {cfg.controller.kind} ({cfg.controller.solver})"
         )
     show = should_show_dashboard(args, console.file, cfg.dashboard.enabled)
     # SIGTERM and SIGHUP end a flight as Ctrl-C does (land, then stop), never the process at once.
     try:
-        with ProcessSignals() as signals, live_view(args, console) as live:
+        from cfknode.app.foxglove.live import live_view
+
+        with ProcessSignals() as signals, live_view(getattr(args, "foxglove", None), console) as live:
             result = run_flight(cfg, name_hint=args.name or t.kind, dashboard=console if show else None,
                                 on_supervisor=signals.route, live=live)
     except MissionError as exc:
@@ -190,8 +192,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if args.json:
         print(summary_to_json(result.summary))
-    else:
-        render_summary(result.summary, console)
+    else:  # by default the rows a person reads at a glance; --verbose every row
+        render(result.summary, console, verbose=getattr(args, "verbose", False))
     # The one line that says how the flight ended (stderr with --json, so stdout stays JSON).
     print(f"cfknode: {result.outcome.message}", file=sys.stderr if args.json else sys.stdout)
     for error in result.outcome.errors:  # the tracebacks are in the log, never on the terminal
@@ -201,14 +203,3 @@ def run(args: argparse.Namespace) -> int:
     complete = result.outcome.state.value == "LANDED" and result.outcome.cause == "complete"
     return 0 if complete and result.log_incomplete is None and not result.outcome.errors else 1
 
-
-def live_view(args: argparse.Namespace, console: Any) -> contextlib.AbstractContextManager[Any]:
-    """The Foxglove live server that ``--foxglove`` asks for (a bad port is a ConfigError), or none."""
-    port = getattr(args, "foxglove", None)
-    if port is None:
-        return contextlib.nullcontext(None)
-    from cfknode.app.foxglove.live import LiveServer
-
-    server = LiveServer(port=port)
-    console.print(f"Foxglove live view: ws://127.0.0.1:{server.port} (Open connection in Foxglove)")
-    return server

@@ -8,8 +8,8 @@ import json
 import sys
 from typing import Any, Sequence
 
-from cfknode.app.cli import UsageError
-from cfknode.app.commands.fly import live_view
+from cfknode.app.errors import UsageError
+from cfknode.app.foxglove.live import live_view
 from cfknode.app.config import Config
 
 
@@ -43,7 +43,7 @@ def run_fleet_command(cfg: Config, args: argparse.Namespace) -> int:
         return report(cfg, result, args)
     # SIGTERM and SIGHUP end a fleet as Ctrl-C does (every drone lands, then stops), as for one drone.
     dashboard = fleet_dashboard(cfg, args)
-    with ProcessSignals() as signals, live_view(args, Console(stderr=True)) as live:
+    with ProcessSignals() as signals, live_view(getattr(args, "foxglove", None), Console(stderr=True)) as live:
         result = run_fleet(cfg, name_hint=args.name or f"fleet{cfg.fleet.size}", on_coordinator=signals.route,
                            dashboard=dashboard, live=live)
     if dashboard is not None and dashboard.error is not None:
@@ -66,7 +66,7 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
           "real time", file=out)
     dashboard = fleet_dashboard(cfg, args, len(names))
     try:  # Ctrl-C, SIGTERM and SIGHUP go to every robot's supervisor (cfknode/app/fleet/flight.py)
-        with ProcessSignals() as signals, live_view(args, Console(stderr=True)) as live:
+        with ProcessSignals() as signals, live_view(getattr(args, "foxglove", None), Console(stderr=True)) as live:
             result = run_robot_fleet(cfg, names, name_hint=args.name or "robots", console=Console(stderr=True),
                                      on_coordinator=signals.route, dashboard=dashboard, live=live)
     except MissionError as exc:
@@ -77,6 +77,8 @@ def run_robots_command(cfg: Config, names: Sequence[str], args: argparse.Namespa
 
 def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
     """Print a fleet's result (one line per drone, the fleet's events, closest approach, radios)."""
+    from cfknode.app.ui.summary import drone_row
+
     out = sys.stderr if args.json else sys.stdout
     if args.json:
         print(json.dumps({
@@ -87,12 +89,10 @@ def report(cfg: Config, result: Any, args: argparse.Namespace) -> int:
             "drones": {d.name: {"uri": d.uri, "outcome": d.outcome.message, **d.summary.to_dict()}
                        for d in result.drones},
         }, default=float))
-    for d in result.drones:
+    verbose = getattr(args, "verbose", False)
+    for d in result.drones:  # one row each; the URI only with --verbose, so a row fits 80 columns
         s = d.summary
-        models = s.extra.get("models_accepted")
-        learned = f", models accepted {models}" if models is not None else ""
-        print(f"{d.name} {d.uri}: MSE {s.mse:.2e} m^2, tick median {s.compute_median_ms:.2f} ms, "
-              f"p99 {s.compute_p99_ms:.2f} ms{learned}: {d.outcome.message}", file=out)
+        print(drone_row(f"{d.name} {d.uri}" if verbose else d.name, s, d.outcome.message), file=out)
         for path in s.extra.get("logs", ()):  # --executor ray: each drone's own logs, on its node
             print(f"{d.name} log {path} (node {str(s.extra.get('ray_node', ''))[:12]})", file=out)
     for event in result.events:

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 
 HELP = "plot flight logs: top view, altitude, error per axis, timing, model versions (PNG)"
 

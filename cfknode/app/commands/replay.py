@@ -8,7 +8,7 @@ import math
 import sys
 from typing import Any
 
-from cfknode.app.cli import UsageError
+from cfknode.app.errors import UsageError
 from cfknode.app.config import parse_override
 
 HELP = "re-run the controller (and a KNODE model) on a flight log's states and compare the commands"

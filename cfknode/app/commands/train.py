@@ -9,8 +9,8 @@ import argparse
 import math
 from pathlib import Path
 
-from cfknode.app.cli import UsageError
 from cfknode.app.commands.data_args import add_data_arguments, dataset_for, read_segments
+from cfknode.app.errors import UsageError
 from cfknode.kernel.outputs import output_problem
 from cfknode.app.commands.fly import add_config_arguments, config_from_args
 

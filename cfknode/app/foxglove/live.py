@@ -8,6 +8,9 @@
 from __future__ import annotations
 
 
+import contextlib
+from typing import Any
+
 import foxglove
 
 from cfknode.app.foxglove.view import SCHEMAS
@@ -49,3 +52,12 @@ class LiveServer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def live_view(port: int | None, console: Any) -> contextlib.AbstractContextManager[LiveServer | None]:
+    """The live server ``--foxglove PORT`` asks for, its address printed (a bad port is a ConfigError), or none."""
+    if port is None:
+        return contextlib.nullcontext(None)
+    server = LiveServer(port=port)
+    console.print(f"Foxglove live view: ws://127.0.0.1:{server.port} (Open connection in Foxglove)")
+    return server

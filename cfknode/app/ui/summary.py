@@ -26,6 +26,10 @@ __all__ = [
     "FlightSummary",
     "TrackingError",
     "compute_summary",
+    "brief_rows",
+    "drone_row",
+    "render",
+    "render_brief",
     "render_summary",
     "summary_from_dict",
     "summary_from_log",
@@ -299,6 +303,92 @@ def render_summary(summary: FlightSummary, console: Console) -> None:
     if s.log_path:
         table.add_row("log", s.log_path, "")
     console.print(table)
+
+
+def brief_rows(summary: FlightSummary) -> list[str]:
+    """The summary at a glance: at most eleven rows of at most 80 columns (a long log path aside).
+
+    What a person checks after a flight; every other number is in ``--json``, the log's
+    ``/summary`` and ``render_summary`` (``--verbose``).
+    """
+    s, x = summary, summary.extra
+    t0, t1 = s.window
+    rows = [f"Flight summary (pattern {t0:.1f}-{t1:.1f} s)",
+            _row("tracking", f"MSE {_e(s.mse)} m^2, max error {_mm(s.max_error)}"),
+            _row("tick compute", f"median {_ms(s.compute_median_ms)} ms, p99 {_ms(s.compute_p99_ms)} ms"),
+            _row("missed", f"{s.missed_deadlines} of {s.ticks} deadlines"),
+            _row("speed", f"{_g(s.speed_factor, 3)}x real time" + (", lockstep" if x.get("lockstep") else ""))]
+    if "models_accepted" in x:
+        rows.append(_row("models", f"{x['models_accepted']} accepted of {x.get('models_trained', '?')} trained"))
+    if isinstance(x.get("adaptation_thrust_scale_end"), (int, float)):
+        rows.append(_row("mass estimate", f"{x['adaptation_thrust_scale_end']:.3f} x nominal "
+                                          f"(fast layer, {x.get('adaptation', '?')})"))
+    if s.recovery:
+        rows.append(_row("mass steps", _steps_text(s.recovery)))
+    attention = _attention(x)
+    if attention:
+        rows.append(_row("attention", attention))
+    rows.append(_row("log", str(s.log_path)))
+    return rows
+
+
+def render(summary: FlightSummary, console: Console, verbose: bool = False) -> None:
+    """What ``cfknode fly`` prints: the rows at a glance, or with ``verbose`` every row."""
+    (render_summary if verbose else render_brief)(summary, console)
+
+
+def render_brief(summary: FlightSummary, console: Console) -> None:
+    """Print ``brief_rows`` as plain lines (no table frame: rows, not borders, are what a person reads)."""
+    for n, row in enumerate(brief_rows(summary)):
+        console.print(f"[bold]{row}[/]" if n == 0 else row, highlight=False, soft_wrap=True, markup=n == 0)
+
+
+def drone_row(name: str, summary: FlightSummary, outcome: str) -> str:
+    """One fleet drone in one line: its tracking, tick timing, models accepted and outcome."""
+    s = summary
+    models = s.extra.get("models_accepted")
+    learned = f", {models} models" if models is not None else ""
+    tick = f"{s.compute_median_ms:.2f}/{s.compute_p99_ms:.2f}" if math.isfinite(s.compute_p99_ms) else "n/a"
+    mse = f"{s.mse:.2e}" if math.isfinite(s.mse) else "n/a"
+    return f"{name}: MSE {mse} m^2, tick {tick} ms{learned}, {outcome}"
+
+
+def _row(label: str, value: str) -> str:
+    return f"  {label:<15}{value}"
+
+
+def _e(x: float) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.3e}"
+
+
+def _mm(x: float) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x * 1e3:.1f} mm"
+
+
+def _steps_text(recovery: Sequence[Mapping[str, Any]]) -> str:
+    """Each mass step as factor@time->recovery, until the row is full; the rest only counted."""
+    parts = []
+    for r in recovery:
+        ttr = r.get("time_to_recover_s")
+        parts.append(f"{r['factor']:g}x@{r['t']:.1f}s {'never' if ttr is None else f'{ttr:.2f} s'}")
+    text = ", ".join(parts[:2]) + (f" (+{len(parts) - 2} more)" if len(parts) > 2 else "")
+    return "recovered in " + text
+
+
+def _attention(extra: Mapping[str, Any]) -> str:
+    """What went wrong in a flight that landed anyway; empty when nothing did."""
+    notes = []
+    if extra.get("fallback_ticks"):
+        notes.append(f"{extra['fallback_ticks']} fallback ticks")
+    if extra.get("fence_excursion_m"):
+        notes.append(f"fence excursion {_mm(extra['fence_excursion_m'])}")
+    if extra.get("internal_errors"):
+        notes.append(f"{len(extra['internal_errors'])} internal errors")
+    if extra.get("trainer_failed"):
+        notes.append("trainer failed")
+    if extra.get("flight_log"):
+        notes.append(f"log {extra['flight_log']}")
+    return ", ".join(notes)
 
 
 def _finite(x: np.ndarray) -> np.ndarray:

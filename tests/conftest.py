@@ -1,0 +1,43 @@
+"""Test speeds and isolation, applied at collection from one table (tests/speeds.py).
+
+Each test gets the marks its file (or the test itself) has in ``speeds.SPEEDS``, so
+``python -m pytest -m "not slow"`` is the fast run (docs/testing.md). Each file is one
+``xdist_group``, so pytest-xdist keeps a file's module fixtures (one flight, shared by its
+tests) on one worker; files that share something outside the process share a group. Each
+worker has its own runtime and cache directories.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from speeds import group_for, marks_for
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        name = getattr(item, "originalname", item.name)
+        for mark in marks_for(item.path.name, name):
+            item.add_marker(mark)
+        item.add_marker(pytest.mark.xdist_group(group_for(item.path.name)))
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_runtime_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A runtime and a cache directory per test process (each xdist worker), which subprocesses inherit.
+
+    Two workers' flights then never share the default e-stop mailbox (``$XDG_RUNTIME_DIR/cfknode``,
+    where a flight claims its robot's name) nor write one compiled MPC library into the shared
+    code-generation cache (``$XDG_CACHE_HOME/cfknode``) at once.
+    """
+    root = tmp_path_factory.mktemp("xdg")
+    for name in ("runtime", "cache"):
+        (root / name).mkdir(mode=0o700)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("XDG_RUNTIME_DIR", str(root / "runtime"))
+        patch.setenv("XDG_CACHE_HOME", str(root / "cache"))
+        yield root
