@@ -60,6 +60,13 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_lag_bank_picks_the_motor_lag_that_explains_the_climb": FAST,
         "test_the_late_oracle_hears_the_true_mass_after_its_delay": FAST,
     },
+    "test_api.py": {
+        "*": FAST,
+        "test_online_learning_takes_the_controllers_floor": SPAWNS,
+        "test_online_learning_writes_the_documented_log_protocol": BOTH,
+        "test_a_simulator_that_passes_the_exact_state_every_tick_raises_no_false_alarm": FLIES,
+        "test_with_the_exact_state_a_mass_step_is_taken_and_tracked_a_bounded_time": FLIES,
+    },
     "test_bench_executor.py": {
         "*": BOTH,
         "test_executor_options_are_checked": FAST,
