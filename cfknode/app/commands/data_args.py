@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.data.check import split_by_group, split_dataset
 from cfknode.app.data.prepare import Preparation, TableOptions, prepare
+from cfknode.app.data.rosbag import is_bag, read_bag
 from cfknode.app.data.tables import parse_column_map, read_table
 from cfknode.models.training import Dataset, Segment, make_dataset
 
@@ -21,7 +22,10 @@ from cfknode.models.training import Dataset, Segment, make_dataset
 def add_data_arguments(p: argparse.ArgumentParser, logs_required: bool = False) -> None:
     p.add_argument("--log", action="append", default=[], metavar="FLIGHT_LOG", help="cfknode flight log (repeatable)")
     p.add_argument("--data", action="append", default=[], metavar="TABLE",
-                   help="CSV or Parquet flight table in the schema of docs/data.md (repeatable)")
+                   help="CSV or Parquet flight table in the schema of docs/data.md, or a ROS 2 bag of "
+                        "Crazyswarm2's topics (its folder, .mcap or .db3) (repeatable)")
+    p.add_argument("--robot", metavar="NAME", help="the robot whose topics a ROS 2 bag is read for "
+                   "(/NAME/pose, /NAME/cmd_vel_legacy; default hardware.robot)")
     p.add_argument("--columns", metavar="NAME=COLUMN,...", help="map the table's column names onto the schema's")
     p.add_argument("--thrust-coefficient", dest="thrust_coefficient", type=float, metavar="N_PER_RAD2_S2",
                    help="thrust per motor speed squared, for tables with motor speeds m1..m4 (rad/s)")
@@ -50,7 +54,8 @@ def read_segments(args: argparse.Namespace, cfg: Config,
                         thrust_coefficient=args.thrust_coefficient, align=args.align, every=args.every)
     preps = []
     for path in args.data:
-        found, prep = prepare(read_table(path, columns), str(path), opts)
+        table = (read_bag(path, args.robot or cfg.hardware.robot) if is_bag(path) else read_table(path, columns))
+        found, prep = prepare(table, str(path), opts)
         if not found:
             raise ConfigError(f"{path}: no run of at least 20 clean samples to train on ({prep.line()})")
         say(prep.line())
