@@ -10,35 +10,30 @@ acceleration instead, the 2 Hz observer and the MPC oscillated through that lag)
 shifting sigma so that model + layer predicts the same acceleration before and after; what remains is d. k compares
 the horizontal acceleration the measured attitude gives with the one commanded.
 
-Method choice (paper cell, mass 0.5x then 1.33x, both at 4 Hz / thrust rate 6): "dob" (first-order disturbance
-observer) MSE 0.0019, "l1" (velocity predictor + adaptive law + output filter) 0.0059 with a 0.40 m sag against 0.25:
-the l1 filter chain adds lag for no gain here. "dob" is the method; "l1" stays for comparison.
+"dob" (a first-order disturbance observer) is the method; "l1" (velocity predictor, adaptive law, output
+filter) stays for comparison: its filter chain adds lag for no gain on a mass step.
 
-No single bandwidth serves both a noisy mocap and a payload step (6 Hz: 1.4e-3 m^2 on the lab circle
-with 2 mm of noise; 2 Hz: a 0.49 m sag at 1.33x mass). So the observer is slow between steps and a step
-detector raises an alarm: a CUSUM of the frame-to-frame vertical velocity surprise, normalised by its noise
-level learned in flight. For ``step_hold_s`` after it the mass is fitted to the mocap heights around the
-onset (step_fit.py), which does not ring as the observer moving an additive estimate into the mass did
-(0.40-0.74 for a true 0.5); a fit that sees no step keeps the mass. Without heights the observer runs at
-``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm. See
-docs/results.md#fast-adaptation.
+No single bandwidth serves both a noisy mocap and a payload step, so the observer is slow between steps and
+a step detector raises an alarm: a CUSUM of the frame-to-frame vertical velocity surprise, normalised by its
+noise level learned in flight. For ``step_hold_s`` after it the mass is fitted to the mocap heights around
+the onset (step_fit.py), which does not ring as moving an additive estimate into the mass did; a fit that
+sees no step keeps the mass. A step is tracked at most ``step_max_s``. Without heights the observer runs at
+``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm.
 
-What the MPC gets is not sigma itself (dob): sigma = omega (v - z) passes the velocity estimate's noise straight
-through at gain omega, and in quiet flight that noise was the whole offset (0.027 m/s^2 rms horizontally) and
-cost 17 % MSE on the lab circle. The published offset is sigma behind a second low-pass pole (``output_bandwidth``;
-bypassed vertically while a step is tracked), and horizontally shrunk where it is not clearly above
-``offset_deadband``: the few mm/s^2 left at the circle's frequency follow the attitude measurement's age and the
-attitude loop's response, dynamics the MPC cannot cancel as a constant. The thrust scale learns from the
-smoothed vertical estimate too (at 2 mm of mocap noise the raw one shook it: z MSE 1.05e-6 against 3.0e-7).
+What the MPC gets is not sigma itself: sigma = omega (v - z) passes the velocity estimate's noise straight
+through at gain omega, and in quiet flight that noise is the whole offset. The published offset is sigma
+behind a second low-pass pole (``output_bandwidth``; bypassed vertically while a step is tracked), and
+horizontally shrunk where it is not clearly above ``offset_deadband``: what is left at the circle's
+frequency follows the attitude measurement's age and the attitude loop, which the MPC cannot cancel as a
+constant. The thrust scale learns from the smoothed vertical estimate too.
 
 What the controller flies with is ``applied``: the estimate on the axes where it acts, the model alone on the
 others (``engagement``). An axis acts once the error the layer sees there (its offset; vertically the offset plus
 the mass estimate's share at hover) is above ``engage_level``, or its slow mean above ``engage_slow_level``, and
-lets go after ``release_s`` with both under half their levels. On a plant the model matches, the estimate is
-noise and unmodelled dynamics (up to 0.077 m/s^2 at 2 mm of mocap noise, its 2 s mean 0.019), and acting on it
-cost 0.1-6 % over plain MPC; now such a flight is plain MPC's to the last digit. A step, a wind or a thrust-map
-error is far above the level within a fraction of a second, a 0.4-0.7 % mass error through the slow mean
-within seconds. The cost: an error under about 0.3 % is left to the MPC (1.5 mm of height on the lab circle).
+lets go after ``release_s`` with both under half their levels. On a plant the model matches the estimate is
+noise, and such a flight is plain MPC's; a step, a wind or a thrust-map error is far above the level within a
+fraction of a second. The measurements behind each choice: docs/results.md#fast-adaptation and
+docs/history.md#fast-adaptation-a-slow-observer-a-step-detector-the-motor-lag-chosen-in-flight.
 """
 
 from __future__ import annotations

@@ -37,8 +37,8 @@ def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float
     """The published offset: ``sigma`` low-passed at ``omega`` (rad/s per axis; inf passes sigma through).
 
     The observer's sigma = omega (v - z) carries the velocity estimate's noise at gain omega, unfiltered: in
-    quiet flight it is that noise (a 0.5 Hz horizontal sigma was 0.027 m/s^2 rms, 96 % of it above 5 Hz, with a
-    0.999 correlation to omega times the velocity error). Behind this second pole it rolls off as 1/f."""
+    quiet flight it is that noise, almost all of it far above the observer's band (docs/history.md).
+    Behind this second pole it rolls off as 1/f."""
     return out + np.minimum(1.0, omega * dt) * (sigma - out)
 
 
