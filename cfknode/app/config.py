@@ -50,6 +50,7 @@ class OnlineConfig:
     gate_control_gain: tuple[float, float]
     gate_max_velocity_gain: float
     gate_max_cross_gain: float
+    gate_max_tilt_climb: float
     gate_layer_margin: float
     gate_layer_steps: int
     gate_layer_min_gain: float
@@ -180,6 +181,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("online.gate_min_pairs", lambda v: v >= 2, ">= 2"),
     ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
     ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
+    ("online.gate_max_tilt_climb", lambda v: v >= 0, ">= 0 m/s^2"),
     ("online.gate_layer_margin", lambda v: 0 <= v < 1, "in [0, 1)"),
     ("online.gate_layer_steps", lambda v: 1 <= v <= 400, "in 1..400"),
     ("online.gate_layer_min_gain", lambda v: 0 <= v <= 10, "in [0, 10] m/s^2"),

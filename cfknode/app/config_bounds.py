@@ -176,6 +176,7 @@ BOUNDS: dict[str, Bound] = {
     "online.gate_control_gain": _b(0, 100, open_low=True),
     "online.gate_max_velocity_gain": _b(0, 100, "1/s"),
     "online.gate_max_cross_gain": _b(0, 10),
+    "online.gate_max_tilt_climb": _b(0, 10, "m/s^2"),
     "online.gate_layer_margin": _b(0, 1),
     "online.gate_layer_steps": _b(1, 400, "pairs"),
     "online.gate_layer_min_gain": _b(0, 10, "m/s^2"),
