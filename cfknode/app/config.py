@@ -142,6 +142,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.max_tilt_deg", lambda v: 0 < v < 80, "in (0, 80)"),
     ("controller.min_thrust_fraction", lambda v: 0 <= v < 1, "in [0, 1)"),
     ("controller.max_thrust_fraction", lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
+    ("controller.cone_reserve_deg", lambda v: 0 <= v <= 20, "in [0, 20] deg"),
     ("controller.adaptation_settings.bandwidth_hz", lambda v: 0 < v <= 50, "in (0, 50] Hz"),
     ("controller.adaptation_settings.max_offset", lambda v: v > 0, "> 0 m/s^2"),
     ("controller.adaptation_settings.thrust_scale_bounds", lambda v: 0 < v[0] <= 1 <= v[1], "[low, high] with 0 < low <= 1 <= high"),

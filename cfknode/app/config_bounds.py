@@ -81,6 +81,7 @@ BOUNDS: dict[str, Bound] = {
     "controller.max_tilt_deg": _b(5, 60, "deg"),
     "controller.min_thrust_fraction": _b(0, 0.9),
     "controller.max_thrust_fraction": _b(0.5, 1.0),
+    "controller.cone_reserve_deg": _b(0, 20, "deg"),
     "controller.yaw_rate_gain": _b(0, 20, "1/s"),
     "controller.max_yaw_rate_deg": _b(0, 360, "deg/s", open_low=True),
     "controller.geometric_kp": _b(0, 10, "N/m", open_low=True),
