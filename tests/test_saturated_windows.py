@@ -43,7 +43,10 @@ def fly(adaptation: str, thrust_to_weight: float | None, seconds: float = 1.6,
     flown by a public-API Controller with an online learner as its observer; returns (learner, trainer, saturated
     ticks). Below 1 it sinks with the thrust at the clamp on every tick; ``start_below`` m under the reference,
     sinking at 0.5 m/s, it is there from the first tick."""
-    cfg = cfknode.load_config(overrides={"controller.adaptation": adaptation, "online.enabled": True})
+    # No reserve for tilt in the layer's thrust cone: its vertical bound is then the clamp itself (with the
+    # reserve it stops 0.4 % short of it, and the command flies uncut).
+    cfg = cfknode.load_config(overrides={"controller.adaptation": adaptation, "online.enabled": True,
+                                         "controller.cone_reserve_deg": 0.0})
     vehicle = cfg.vehicle
     ctrl = cfknode.Controller(cfg.controller, vehicle, model=ModelSlot(None, version=0), ground_z=-10.0)
     trainer = ScriptedTrainer(lambda request: outcome_with(None, request))
