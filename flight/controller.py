@@ -22,7 +22,7 @@ import numpy as np
 
 from cfknode.flight.adaptation import GROUND_MARGIN, AdaptationEstimate, AdaptationLayer, LoopAdaptation, OracleAdaptation
 from cfknode.flight.geometric import GeometricGains, geometric_acc
-from cfknode.flight.mellinger import acc_to_setpoint, force_to_setpoint, shape_force
+from cfknode.flight.mellinger import command_saturated, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.reference import RefSamples
@@ -59,7 +59,7 @@ class Command:
     status: str  # "ok", the solver's status, or "deadline"
     solve_s: float  # the MPC's own solve time (0 without an MPC)
     ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
-    saturated: bool = False  # the thrust cone or the tilt limit cut the command (fast adaptation only)
+    saturated: bool = False  # the command as sent was cut: thrust at the RPYT clamp, or the tilt limit or cone
     # The adaptation layer's estimate and state this tick (tracking a step, frozen, saturated, the axes it acts
     # on); None without a layer.
     layer: AdaptationEstimate | None = None
@@ -81,7 +81,7 @@ class TickInfo:
     missed: bool
     model_version: int
     supervisor_state: str = ""  # the safety supervisor's state after this tick, when there is one
-    saturated: bool = False  # the command was cut by the thrust clamp or the tilt limit (fast adaptation only)
+    saturated: bool = False  # the command as sent was cut by the thrust clamp or the tilt limit (never trained on)
     # The fast layer's estimate this tick (an ``AdaptationEstimate``; None without a layer): the learner does
     # not train on the layer's own transients (a step being tracked, a mass still being learned).
     layer: AdaptationEstimate | None = None
@@ -195,14 +195,12 @@ class Controller:
             if set_limit is not None:
                 set_limit(adapt.f_max())
         acc, ok, solve_s, source, status, model_residual = self._acceleration(state, ref, force_fallback)
-        saturated = False
-        if adapt is None:
-            setpoint = acc_to_setpoint(acc, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
-        else:
-            shaped = shape_force(acc, self.vehicle, self.settings, adapt.shaping())
-            setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+        shaped = shape_force(acc, self.vehicle, self.settings, adapt.shaping() if adapt is not None else None)
+        setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+        if adapt is not None:
             adapt.after_command(np.concatenate((state.p, state.v)), shaped, setpoint.thrust, model_residual)
-            saturated = shaped.thrust_saturated or shaped.tilt_saturated
+        # From the command actually sent, on every path: a cut tick's motion is the limit's, not the model's.
+        saturated = command_saturated(shaped, setpoint, self.vehicle)
         command = Command(acc, setpoint, source, status, solve_s, ok, saturated,
                           adapt.estimate if adapt is not None else None)
         if self.observers:

@@ -89,6 +89,12 @@ def shape_force(acc_world: Sequence[float], vehicle: VehicleConfig, controller: 
     return ShapedForce((fx, fy, fz), applied, thrust_sat, tilt_sat)
 
 
+def command_saturated(shaped: ShapedForce, setpoint: AttitudeSetpoint, vehicle: VehicleConfig) -> bool:
+    """Whether the command as sent was cut: the tilt limit or the cone shrank it, or its thrust sits at the
+    RPYT clamp (the clamp also cuts a command the nominal layer passed through unshaped)."""
+    return shaped.thrust_saturated or shaped.tilt_saturated or setpoint.thrust >= vehicle.thrust_cmd_clamp
+
+
 def acc_to_setpoint(
     acc_world: Sequence[float],
     yaw_des: float,

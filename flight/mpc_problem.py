@@ -237,15 +237,21 @@ def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProble
 
 def cone_limits(uz_plan: np.ndarray, f_max: float, ctrl: ControllerConfig, vehicle: VehicleConfig,
                 out_uz: np.ndarray, out_h: np.ndarray) -> None:
-    """Per-stage cone bounds (written into ``out_uz``, ``out_h``): vertical max f_max - g, and the horizontal
-    radius at the planned vertical ``uz_plan`` (clipped to what can be flown) within thrust and tilt."""
+    """Per-stage cone bounds (written into ``out_uz``, ``out_h``): the vertical max, and the horizontal radius at
+    the planned vertical ``uz_plan`` (clipped to what can be flown) within thrust and tilt.
+
+    Horizontal tracking keeps a reserve at the clamp: the thrust may lean ``controller.cone_reserve_deg`` from
+    vertical whatever the plan. Without it a plan at the top of the cone got no room the next tick, so it stayed
+    at the top with no tilt while the horizontal error grew (a fixed point); the reserve costs the vertical
+    1 - cos(reserve) of the thrust (0.4 % at 5 deg)."""
     g = vehicle.gravity
-    out_uz[:] = f_max - g
+    reserve = f_max * math.sin(math.radians(ctrl.cone_reserve_deg))
+    out_uz[:] = math.sqrt(f_max * f_max - reserve * reserve) - g
     lift = np.clip(uz_plan + g, ctrl.min_thrust_fraction * g, f_max)
     np.minimum(math.tan(math.radians(ctrl.max_tilt_deg)) * lift, np.sqrt(np.maximum(f_max * f_max - lift * lift, 0.0)),
                out=out_h)
-    # A sliver of room: rows with equal bounds are degenerate for the active-set QP (the Mellinger layer cuts the rest).
-    np.maximum(out_h, 0.05, out=out_h)
+    # At least the reserve, and a sliver of room: rows with equal bounds are degenerate for the active-set QP.
+    np.maximum(out_h, max(reserve, 0.05), out=out_h)
 
 
 def _qp_options(qp_solver: str) -> dict[str, Any]:

@@ -63,6 +63,7 @@ class ControllerConfig:
     geometric_kd: Vec3
     adaptation: Literal["none", "l1", "dob", "oracle"]
     adaptation_settings: AdaptationTuning
+    cone_reserve_deg: float = 5.0  # deg the thrust cone leaves horizontal tracking at the clamp (fast adaptation only)
 
 
 @dataclass(frozen=True)

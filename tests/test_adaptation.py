@@ -148,22 +148,24 @@ def _hover_ref(n: int, climb: float = 0.0, lateral: float = 0.0) -> RefSamples:
     return RefSamples(np.zeros(n + 1), p, np.zeros((n + 1, 3)), np.zeros((n + 1, 3)), np.zeros(n + 1))
 
 
-def test_mpc_cone_puts_altitude_before_tilt_near_the_clamp() -> None:
+def test_mpc_cone_puts_altitude_first_but_keeps_a_reserve_for_tilt_near_the_clamp() -> None:
     cfg = load_config(overrides={"controller.adaptation": "dob", "controller.codegen": False})
     mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
     n = mpc.horizon
-    mpc.set_thrust_limit(1.05 * G)  # thrust-to-weight 1.05 for the estimated mass
+    f = 1.05 * G
+    mpc.set_thrust_limit(f)  # thrust-to-weight 1.05 for the estimated mass
+    reserve = f * np.sin(np.radians(cfg.controller.cone_reserve_deg))
     # 0.5 m low and 1 m to the side: there is no thrust for both.
     x0 = np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0])
-    for _ in range(3):  # the horizontal room follows the previous plan's vertical
-        sol = mpc.solve(x0, _hover_ref(n, lateral=1.0))
-    assert sol.ok
-    u = sol.u_pred
-    lift = u[:, 2] + G
-    horiz = np.hypot(u[:, 0], u[:, 1])
-    assert u[0, 2] == pytest.approx(0.05 * G, abs=1e-6)  # climbing at the full vertical margin first
-    assert np.all(np.hypot(horiz, lift) <= 1.05 * G + 0.06)  # inside the cone (and its 0.05 sliver) at every stage
-    assert horiz[0] < 0.2  # no tilt until the vertical is paid
+    plans = [mpc.solve(x0, _hover_ref(n, lateral=1.0)) for _ in range(4)]  # warm-started: room from the last plan
+    assert all(sol.ok for sol in plans)
+    for sol in plans[2:]:  # the first plans start from a cold guess of the vertical
+        u = sol.u_pred
+        lift, horiz = u[:, 2] + G, np.hypot(u[:, 0], u[:, 1])
+        assert u[0, 2] == pytest.approx(np.sqrt(f * f - reserve * reserve) - G, abs=1e-6)  # climbing, the reserve aside
+        assert np.all(np.hypot(horiz, lift) <= f + 1e-6)  # inside the cone at every stage
+        # The fixed point at the top with no tilt is gone: the reserve (octagon inscribed) is flown.
+        assert horiz[0] >= np.cos(np.pi / 8) * reserve - 1e-6
     # Adaptation none: today's problem exactly (no rows, the per-axis box).
     none = load_config(overrides={"controller.adaptation": "none"}).controller
     plain = build_qp_problem(none, cfg.vehicle)

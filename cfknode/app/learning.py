@@ -107,7 +107,7 @@ def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
                       envelope_from_data=speed is None, constant_free=beside_layer,
                       min_improvement=o.gate_layer_margin if beside_layer else 0.0,
                       steps=o.gate_layer_steps if beside_layer else 1,
-                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0)
+                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb)
 
 
 @contextlib.contextmanager

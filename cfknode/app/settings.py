@@ -36,6 +36,7 @@ class OnlineConfig:
     gate_control_gain: tuple[float, float]
     gate_max_velocity_gain: float
     gate_max_cross_gain: float
+    gate_max_tilt_climb: float
     gate_layer_margin: float
     gate_layer_steps: int
     gate_layer_min_gain: float

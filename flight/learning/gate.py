@@ -128,6 +128,7 @@ class GateVerdict:
     control_gain: tuple[float, float] = (math.nan, math.nan)  # extreme eigenvalues of sym(I + dr/du)
     velocity_gain: float = math.nan  # largest eigenvalue of sym(dr/dv), 1/s
     cross_gain: float = math.nan  # largest |off-diagonal| of dr/du
+    tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
 
 
 @dataclass(frozen=True)
@@ -149,6 +150,8 @@ class GateLimits:
       fits a spurious dr_z/du_x, and the MPC then tilts hard to "climb" (measured: 0.26 made it
       command 5 m/s^2 sideways and leave the circle by 0.6 m). 0.2 still admits an 11 deg yaw
       misalignment between mocap and the vehicle.
+    - no climb from tilt at the thrust limit: tilting either way at the top of the input box gains at most
+      ``max_tilt_climb`` of climb (``tilt_climb``), a curvature a bound on each Jacobian cannot see.
     """
 
     max_residual: float
@@ -169,6 +172,8 @@ class GateLimits:
     # ... and the gain must be at least this acceleration (m/s^2) over that rollout's time: on 0.1 s of fresh
     # data a few mm/s^2 is what a network fitted to noise scores, and such networks flew worse as often as better.
     min_gain: float = 0.0
+    # m/s^2: the most climb a candidate may predict from tilting either way at the top of the input box (``tilt_climb``).
+    max_tilt_climb: float = math.inf
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -219,6 +224,34 @@ def residual_verdict(model_file: ModelFile, model: ResidualQueue, xs: np.ndarray
 
 
 JACOBIAN_CHUNK = 20  # nodes per linearise call: the MPC's own batch size
+TILT_FRACTIONS = (0.25, 0.5, 1.0)  # of the box's horizontal half-width: a bump inside the box counts too
+TILT_STATES = 8  # envelope states (velocities) the tilt check is made at
+
+
+def tilt_climb(model: ResidualQueue | Any, envelope_x: np.ndarray, envelope_u: np.ndarray) -> float:
+    """Largest climb [m/s^2] ``model`` predicts from tilting the command either way along x or y, at the top of the
+    input box (the thrust clamp), over the whole horizontal box: min over the two signs of r_z(+a) - r_z(0).
+
+    At the clamp the thrust cannot grow, so a tilt either way can only cost climb. A residual that is even in
+    u_x or u_y with its minimum at level (dr_z/du_y -0.04 below 0 and +0.04 above) passes a bound on each
+    Jacobian, yet the MPC pinned at its vertical bound then swings the attitude to "climb". A term odd in the
+    tilt (a yaw misalignment) gains on one side and loses on the other: the min over signs leaves it alone.
+    """
+    if envelope_u.shape[0] == 0:
+        return 0.0
+    top = float(envelope_u[:, 2].max())
+    half = np.maximum(np.abs(envelope_u[:, :2]).max(axis=0), 1e-9)
+    states = envelope_x[:: max(1, envelope_x.shape[0] // TILT_STATES)][:TILT_STATES]
+    m = states.shape[0]
+    offsets = [np.zeros(3)] + [sign * f * half[j] * np.eye(3)[j]
+                               for j in (0, 1) for f in TILT_FRACTIONS for sign in (1.0, -1.0)]
+    u = np.array([[0.0, 0.0, top] + o for o in offsets for _ in range(m)])
+    x = np.tile(states, (len(offsets), 1))
+    rz = np.asarray(model.evaluate(x, u))[:, 2].reshape(len(offsets), m)
+    gain = rz[1:] - rz[0]  # (pairs of +/- offsets, states)
+    return float(np.minimum(gain[0::2], gain[1::2]).max())
+
+
 
 
 def run_gate(
@@ -262,6 +295,10 @@ def gate_steps(
     reason, peak = residual_verdict(candidate_file, candidate, xs, us, limits.max_residual)
     if reason:
         return GateVerdict(False, reason, nan, nan, nan, peak, n)
+    climb = tilt_climb(candidate, envelope_x, limits.envelope_u) if math.isfinite(limits.max_tilt_climb) else nan
+    if climb > limits.max_tilt_climb:
+        return GateVerdict(False, f"tilting either way gains {climb:.3g} m/s^2 of climb at the thrust limit "
+                           f"(above {limits.max_tilt_climb:g})", nan, nan, nan, peak, n, tilt_climb=climb)
     yield
     # The MPC's Jacobians, at every 8th recent point and all envelope points, in the MPC's own
     # batch size: one call over ~150 nodes crossed OpenBLAS's threading threshold and took 10x
@@ -290,7 +327,7 @@ def gate_steps(
     lo, hi = limits.control_gain
 
     def verdict(reason: str) -> GateVerdict:
-        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross)
+        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, climb)
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
@@ -321,4 +358,5 @@ __all__ = [
     "operating_envelope",
     "rollout_rmse",
     "run_gate",
+    "tilt_climb",
 ]

@@ -41,7 +41,8 @@ class LearnerReports:
             msg.update(val_error=verdict.rmse_candidate, val_error_current=verdict.rmse_current,
                        val_error_nominal=verdict.rmse_nominal, max_residual=verdict.max_residual,
                        val_pairs=verdict.pairs, control_gain=list(verdict.control_gain),
-                       velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain)
+                       velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain,
+                       tilt_climb=verdict.tilt_climb)
         if math.isfinite(swap_s):
             msg["swap_ms"] = 1e3 * swap_s
         if math.isfinite(install_s):
