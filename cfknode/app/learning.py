@@ -107,7 +107,14 @@ def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
                       envelope_from_data=speed is None, constant_free=beside_layer,
                       min_improvement=o.gate_layer_margin if beside_layer else 0.0,
                       steps=o.gate_layer_steps if beside_layer else 1,
-                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb)
+                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
+                      layer_hz=_layer_hz(cfg) if beside_layer else None)
+
+
+def _layer_hz(cfg: Config) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The fast layer's observer and output cut-offs ((xy, z) Hz each), as ``cfknode model check`` uses them."""
+    a = cfg.controller.adaptation_settings
+    return (a.bandwidth_xy_hz, a.bandwidth_hz), (a.output_bandwidth_xy_hz, a.output_bandwidth_hz)
 
 
 @contextlib.contextmanager

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.signal import butter, filtfilt
 
 from cfknode.models.modelfile import ModelFile
+from cfknode.models.residual_check import shares
 from cfknode.models.residual_np import ResidualQueue
 
 # Same rules as offline training data (cfknode.models.training, which imports torch):
@@ -174,6 +175,10 @@ class GateLimits:
     min_gain: float = 0.0
     # m/s^2: the most climb a candidate may predict from tilting either way at the top of the input box (``tilt_climb``).
     max_tilt_climb: float = math.inf
+    # Beside the fast layer: its observer and output cut-offs ((xy, z) Hz each). A candidate must remove part
+    # of what the layer leaves on held-out data on some axis (``beyond_layer``), the score `cfknode model
+    # check` reports: one that only re-learns what the layer already takes is never flown.
+    layer_hz: tuple[tuple[float, float], tuple[float, float]] | None = None
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -344,11 +349,28 @@ def gate_steps(
     gain = (e_cur - e_cand) / (k * float(np.median(fresh.dt)))  # m/s^2: the error removed per second of rollout
     if gain < limits.min_gain:
         return verdict(f"better by only {gain:.3g} m/s^2 on held-out data ({what}below {limits.min_gain:g}: noise)")
+    if limits.layer_hz is not None:
+        score = beyond_layer(candidate, current, fresh, limits.layer_hz)
+        if not float(np.max(score)) > 0.0:
+            return verdict("explains nothing beyond the fast layer on held-out data (score "
+                           + " / ".join(f"{s:+.0%}" for s in score) + ")")
     return verdict("")
+
+
+def beyond_layer(candidate: Any, current: Any | None, pairs: GatePairs,
+                 layer_hz: tuple[tuple[float, float], tuple[float, float]]) -> np.ndarray:
+    """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
+    candidate (in its place) and the layer remove together: ``residual_check.shares(...).beyond_layer``."""
+    x0 = pairs.x0
+    flying = current.evaluate(x0, pairs.u) if current is not None else 0.0
+    r = (pairs.x1[:, 3:6] - x0[:, 3:6]) / pairs.dt[:, None] - pairs.u - flying
+    t = np.concatenate(([0.0], np.cumsum(pairs.dt[:-1])))
+    return shares(t, r, candidate.evaluate(x0, pairs.u) - flying, *layer_hz).beyond_layer
 
 
 __all__ = [
     "GateLimits",
+    "beyond_layer",
     "GatePairs",
     "GateVerdict",
     "gate_pairs",

@@ -1,0 +1,73 @@
+"""Beside the fast layer the gate judges a candidate by what transfers: on held-out data it must remove
+part of what the layer leaves (the score `cfknode model check` reports), or it is never flown."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cfknode.flight.learning.gate import beyond_layer, gate_pairs, run_gate
+from cfknode.models.residual_np import ResidualQueue
+from test_online_gate import RATE, limits, linear_residual_model
+
+LAYER_HZ = ((0.5, 1.0), (0.5, 0.5))  # the default layer's observer and output cut-offs
+
+
+def manoeuvre(slope: float, seed: int, n: int = 800) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """400 Hz of v' = u + slope * v_x e_x + a constant, with a command that swings v_x both ways."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / RATE
+    w = rng.uniform(4.0, 7.0)
+    u = np.stack([2.0 * np.sin(w * t), 0.4 * np.cos(2 * t), 0.2 * np.sin(5 * t)], axis=1)
+    v = np.zeros((n, 3))
+    for i in range(n - 1):
+        v[i + 1] = v[i] + (u[i] + np.array([slope * v[i, 0], 0.0, 0.0]) + [0.05, -0.03, 0.1]) / RATE
+    p = np.cumsum(v, axis=0) / RATE
+    return t, np.concatenate((p, v + rng.normal(scale=2e-4, size=v.shape)), axis=1), u
+
+
+def slope_model(slope: float) -> tuple[object, ResidualQueue]:
+    mf = linear_residual_model(np.diag([slope, 0.0, 0.0]), np.zeros((3, 3)))
+    return mf, ResidualQueue.from_model_file(mf)
+
+
+def test_a_term_that_is_there_scores_and_one_that_is_not_does_not():
+    t, x, u = manoeuvre(-0.6, seed=1)
+    fresh = gate_pairs(t, x, u, 8.0)
+    _, true_model = slope_model(-0.6)
+    _, wrong_model = slope_model(+0.6)
+    assert beyond_layer(true_model, None, fresh, LAYER_HZ)[0] > 0.5  # the drag the layer is too slow for
+    assert beyond_layer(wrong_model, None, fresh, LAYER_HZ)[0] < 0.0
+    # A plant without the slope: the slope a model learned elsewhere makes things worse, not better.
+    t, x, u = manoeuvre(0.0, seed=2)
+    assert beyond_layer(true_model, None, gate_pairs(t, x, u, 8.0), LAYER_HZ)[0] < 0.0
+
+
+def test_the_gate_rejects_a_slope_learned_on_another_manoeuvre_and_flies_one_that_transfers():
+    lim = limits()
+    import dataclasses
+
+    beside = dataclasses.replace(lim, constant_free=True, steps=5, layer_hz=LAYER_HZ)
+    mf, model = slope_model(-0.6)
+    # Fresh data from a manoeuvre where the vehicle has no such drag: the model learned it elsewhere.
+    t, x, u = manoeuvre(0.0, seed=3)
+    verdict = run_gate(mf, model, None, gate_pairs(t[400:], x[400:], u[400:], 8.0), x[:400], u[:400], beside)
+    assert not verdict.accepted
+    # Fresh data that does have it: the same model passes every rule, the transfer score included.
+    t, x, u = manoeuvre(-0.6, seed=4)
+    verdict = run_gate(mf, model, None, gate_pairs(t[400:], x[400:], u[400:], 8.0), x[:400], u[:400], beside)
+    assert verdict.accepted, verdict.reason
+
+
+def test_the_transfer_rule_alone_rejects_what_explains_nothing_beyond_the_layer():
+    import dataclasses
+
+    # Every other comparison relaxed: only the score beyond the layer decides.
+    lenient = dataclasses.replace(limits(), constant_free=True, min_improvement=-1000.0, min_gain=-np.inf,
+                                  layer_hz=LAYER_HZ)
+    mf, model = slope_model(-0.6)
+    t, x, u = manoeuvre(0.0, seed=3)
+    verdict = run_gate(mf, model, None, gate_pairs(t[400:], x[400:], u[400:], 8.0), x[:400], u[:400], lenient)
+    assert not verdict.accepted and "explains nothing beyond the fast layer" in verdict.reason
+    without = run_gate(mf, model, None, gate_pairs(t[400:], x[400:], u[400:], 8.0), x[:400], u[:400],
+                       dataclasses.replace(lenient, layer_hz=None))
+    assert without.accepted, without.reason  # the rule, not another, turned it away
