@@ -1,7 +1,9 @@
 """Configuration: the settings dataclasses, filled from default.yaml, a user file and CLI overrides.
 
-The defaults live only in ``config/default.yaml`` (with their sources); the dataclasses
-(``cfknode.app.settings`` and each layer's ``settings``) are the schema. A wrong key, a wrong
+The defaults live in ``config/default.yaml`` (the keys a user sets) and ``config/tuning.yaml`` (the
+tuning and bench keys), or on the field where it has one; the dataclasses (``cfknode.app.settings``
+and each layer's ``settings``) are the schema, each field declaring its unit, bounds and meaning
+(``cfknode.kernel.setting``; docs/configuration.md lists them). A wrong key, a wrong
 type or a missing file raises ``ConfigError`` whose one-line message names the key or the file.
 """
 
@@ -140,10 +142,27 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
 )
 
 
+PACKAGED = ("config/default.yaml", "config/tuning.yaml")  # the keys a user sets; the tuning and bench keys
+
+
 def default_dict() -> dict[str, Any]:
-    """The default configuration as a plain nested dict (from default.yaml)."""
-    text = resources.files("cfknode").joinpath("config/default.yaml").read_text()
-    return yaml.safe_load(text)
+    """The default configuration as a plain nested dict: default.yaml and tuning.yaml, which share no key."""
+    data: dict[str, Any] = {}
+    for name in PACKAGED:
+        data = _union(data, yaml.safe_load(resources.files("cfknode").joinpath(name).read_text()), name, "")
+    return data
+
+
+def _union(a: Mapping[str, Any], b: Mapping[str, Any], name: str, prefix: str) -> dict[str, Any]:
+    out = dict(a)
+    for key, value in b.items():
+        if key not in a:
+            out[key] = value
+        elif isinstance(a[key], dict) and isinstance(value, dict):
+            out[key] = _union(a[key], value, name, f"{prefix}{key}.")
+        else:
+            raise ConfigError(f"config key '{prefix}{key}' is set twice in the packaged files (again in {name})")
+    return out
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

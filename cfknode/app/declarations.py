@@ -15,7 +15,7 @@ from typing import Any, Iterator
 from cfknode.app.settings import Config
 from cfknode.kernel.setting import BOUNDS, DOC, UNIT
 
-__all__ = ["Declared", "declared", "leaf_keys"]
+__all__ = ["Declared", "declared", "leaf_keys", "yaml_comment"]
 
 
 @dataclass(frozen=True)
@@ -61,3 +61,8 @@ def declared(cls: type = Config, prefix: str = "", record: bool = False) -> Iter
 def leaf_keys() -> list[str]:
     """The keys a YAML file sets (fields of records in lists are inside their list's value)."""
     return [d.key for d in declared() if not d.record]
+
+
+def yaml_comment(d: Declared) -> str:
+    """The comment a packaged YAML file carries on the key's line: its meaning, then its unit."""
+    return f"{d.doc} [{d.unit}]" if d.unit else d.doc
