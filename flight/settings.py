@@ -18,47 +18,48 @@ class AdaptationTuning:
     bandwidth_xy_hz: float = setting(unit="Hz", low=0, high=50, open_low=True,
         doc="the same for x and y: mocap noise and attitude lag enter there, and wind changes slowly")
     predictor_gain: float = setting(unit="1/s", low=0, high=1000, open_low=True, doc="l1 velocity predictor feedback")
-    adaptation_gain: float = setting(low=0, high=100000.0, doc="1/s^2, l1 adaptive law")
+    adaptation_gain: float = setting(low=0, high=100000.0, doc="l1 adaptive law gain (1/s^2)")
     thrust_rate: float = setting(unit="1/s", low=0, high=200, doc="vertical error moved into the mass estimate")
     axis_rate: float = setting(unit="1/s", low=0, high=200,
         doc="x/y tilt effectiveness (measured vs commanded) learning rate; 0 = off")
-    max_offset: float = setting(unit="m/s^2", low=0, high=20, doc="m/s^2 per axis")
+    max_offset: float = setting(unit="m/s^2", low=0, high=20, open_low=True, doc="largest acceleration offset per axis")
     thrust_scale_bounds: tuple[float, float] = setting(unit="x nominal mass", low=0.1, high=10, open_low=True,
         doc="estimated mass / nominal")
     axis_gain_bounds: tuple[float, float] = setting(low=0.1, high=10, open_low=True,
         doc="delivered / commanded tilt (the attitude loop reaches 0.8-1.2)")
     stale_pose_s: float = setting(unit="s", low=0, high=1, open_low=True,
-        doc="s without a fresh mocap pose: estimates frozen")
-    rebase_window_s: float = setting(unit="s", low=0, high=5, open_low=True,
-        doc="s of recent ticks the offset is re-fitted over at a model swap")
-    thrust_lag_s: float | None = setting(None,
+        doc="without a fresh mocap pose this long the estimates are frozen")
+    rebase_window_s: float = setting(unit="s", low=0, high=2, open_low=True,
+        doc="recent ticks the offset is re-fitted over at a model swap")
+    thrust_lag_s: float | None = setting(
         doc="motor thrust lag the observer models; null: chosen in flight (flight/adaptation/thrust_lag.py)")
-    thrust_lag_candidates_s: tuple[float, ...] = setting((0.015, 0.04, 0.08, 0.15), unit="s", low=0.001, high=0.5,
+    thrust_lag_candidates_s: tuple[float, ...] = setting(unit="s", low=0.001, high=0.5,
         doc="the lags chosen among, with vehicle.motor_time_constant, when thrust_lag_s is null")
-    step_threshold: float = setting(0.0, low=0, high=1000,
+    step_threshold: float = setting(low=0, high=1000,
         doc="vertical step detector (dob): alarm level of a CUSUM of the velocity surprise, in noise units; 0 = off")
-    step_bandwidth_hz: float = setting(10.0, unit="Hz", low=0, high=50, open_low=True,
+    step_bandwidth_hz: float = setting(unit="Hz", low=0, high=50, open_low=True,
         doc="vertical cut-off for step_hold_s after an alarm, fast enough to track a mass step")
-    step_thrust_rate: float = setting(400.0, unit="1/s", low=0, high=1000,
+    step_thrust_rate: float = setting(unit="1/s", low=0, high=1000,
         doc="thrust_rate for step_hold_s after an alarm")
-    step_hold_s: float = setting(0.3, unit="s", low=0, high=5, doc="s")
-    step_max_s: float = setting(1.0, unit="s", low=0, high=10, open_low=True,
-        doc="s a step is tracked at most after its first alarm; later alarms start a new step")
-    oracle_delay_s: float = setting(0.0, unit="s", low=0, high=1,
+    step_hold_s: float = setting(unit="s", low=0, high=5, doc="how long the step bandwidth and rate last after an alarm")
+    step_max_s: float = setting(unit="s", low=0, high=10, open_low=True,
+        doc="a step is tracked at most this long after its first alarm; later alarms start a new step")
+    oracle_delay_s: float = setting(unit="s", low=0, high=1,
         doc="adaptation oracle (a bench reference) only: the true mass is told this late")
-    output_bandwidth_hz: float = setting(0.0, unit="Hz", low=0, high=50,
+    output_bandwidth_hz: float = setting(unit="Hz", low=0, high=50,
         doc="dob: the vertical offset the MPC gets is the estimate low-passed again at this cut-off; 0: the estimate")
-    output_bandwidth_xy_hz: float = setting(0.0, unit="Hz", low=0, high=50,
+    output_bandwidth_xy_hz: float = setting(unit="Hz", low=0, high=50,
         doc="the same for x and y (0: the estimate itself)")
-    offset_deadband: float = setting(0.0, unit="m/s^2", low=0, high=5,
+    offset_deadband: float = setting(unit="m/s^2", low=0, high=5,
         doc="a horizontal offset well below it is shrunk toward 0, smoothly (d^3/(d^2+b^2)); 0 = off")
-    engage_level: float = setting(0.0, unit="m/s^2", low=0, high=2,
-        doc="an axis's estimate acts once the error it sees there is above this (0 = always acts),")
-    engage_slow_level: float = setting(float("inf"), unit="m/s^2", low=0, high=2, open_low=True,
-        doc="or once that error's mean over engage_slow_s is above this (a small one that persists),")
-    engage_slow_s: float = setting(2.0, unit="s", low=0, high=60, open_low=True, doc="s")
-    release_s: float = setting(1.0, unit="s", low=0, high=60,
-        doc="and lets go after release_s with both under half their levels")
+    engage_level: float = setting(unit="m/s^2", low=0, high=2,
+        doc="an axis's estimate acts once the error it sees there is above this (0 = always acts)")
+    engage_slow_level: float = setting(unit="m/s^2", low=0, high=2, open_low=True,
+        doc="... or once that error's mean over engage_slow_s is above this (a small one that persists)")
+    engage_slow_s: float = setting(unit="s", low=0, high=60, open_low=True,
+        doc="time constant of the mean engage_slow_level is compared with")
+    release_s: float = setting(unit="s", low=0, high=60,
+        doc="an axis lets go again after this long with both under half their levels")
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,7 @@ class ControllerConfig:
     max_thrust_fraction: float = setting(low=0.5, high=1.0,
         doc="highest vertical thrust the MPC plans, as a fraction of the RPYT clamp's (a_z <= f T_max / m - g)")
     yaw_rate_gain: float = setting(unit="1/s", low=0, high=20, doc="proportional yaw tracking in the Mellinger layer")
-    max_yaw_rate_deg: float = setting(unit="deg/s", low=0, high=360, open_low=True, doc="deg/s")
+    max_yaw_rate_deg: float = setting(unit="deg/s", low=0, high=360, open_low=True, doc="largest yaw rate the Mellinger layer commands")
     geometric_kp: Vec3 = setting(unit="N/m", low=0, high=10, open_low=True,
         doc="firmware Mellinger kp_xy, kp_z (docs/hardware.md#mellinger); geometric controller and MPC fallback")
     geometric_kd: Vec3 = setting(unit="N/(m/s)", low=0, high=5,
@@ -100,9 +101,9 @@ class EstimatorConfig:
     position_std: float = setting(unit="m", low=1e-05, high=0.1, doc="mocap position noise assumed by the filter")
     latency: float = setting(unit="s", low=0, high=0.2,
         doc="mocap latency the estimator predicts across (0 = none assumed)")
-    command_delay: float = setting(0.0, unit="s", low=0, high=0.3,
+    command_delay: float = setting(0.0, unit="s", low=0, high=0.2,
         doc="from a sent command to the acceleration it makes: the MPC plans from the state predicted this far ahead; 0 = off")
-    attitude_lag: float = setting(0.0, unit="s", low=0, high=1,
+    attitude_lag: float = setting(0.17, unit="s", low=0, high=1,
         doc="time constant of the lag the filter passes the commanded x/y acceleration through between frames; 0: at once")
 
 

@@ -24,7 +24,7 @@ class VehicleConfig:
         doc="yaw torque per unit thrust; firmware THRUST2TORQUE 2.1+ (docs/hardware.md#vehicle-parameters)")
     motor_time_constant: float = setting(unit="s", low=0.005, high=0.2,
         doc="first-order motor thrust lag (docs/hardware.md#vehicle-parameters)")
-    gravity: float = setting(unit="m/s^2", low=9.0, high=10.5, doc="m/s^2")
+    gravity: float = setting(unit="m/s^2", low=9.0, high=10.5, doc="gravitational acceleration")
 
     @property
     def newton_per_cmd(self) -> float:

@@ -46,7 +46,7 @@ class OnlineConfig:
         doc="largest eigenvalue of sym(dr/dv) allowed (a positive one is a phantom instability)")
     gate_max_cross_gain: float = setting(low=0, high=10,
         doc="largest |dr_i/du_j|, i != j: mass and thrust errors scale each axis alike (see GateLimits)")
-    gate_layer_margin: float = setting(low=0, high=1,
+    gate_layer_margin: float = setting(low=0, high=1, open_high=True,
         doc="beside a fast layer: a candidate must be this fraction better, constants aside,")
     gate_layer_steps: int = setting(unit="pairs", low=1, high=400,
         doc="... over this many consecutive fresh samples flown from each start")

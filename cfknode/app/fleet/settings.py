@@ -12,8 +12,9 @@ class FleetConfig:
     size: int = setting(unit="drones", low=0, high=16, doc="0 or 1 flies one drone")
     layout: Literal["ring", "stack"] = setting(
         doc="ring: evenly spaced around the circle; stack: same circle, heights stack_spacing apart")
-    stack_spacing: float = setting(unit="m", low=0, high=5, doc="m between stacked heights")
-    ground_spacing: float = setting(unit="m", low=0, high=5, doc="m between stacked drones' start positions")
+    stack_spacing: float = setting(unit="m", low=0, high=5, open_low=True, doc="between stacked heights")
+    ground_spacing: float = setting(unit="m", low=0, high=5, open_low=True,
+        doc="between stacked drones' start positions")
     min_separation: float = setting(unit="m", low=0, high=5,
         doc="m (0: off); Crazyswarm's downwash ellipsoid is 0.12 m wide and 0.3 m tall")
     hold_s: float = setting(unit="s", low=0, high=10, doc="s a pair that came too close hovers in place before landing")
