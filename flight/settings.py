@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from cfknode.kernel.vehicle import Vec3
 from cfknode.kernel.setting import setting
+from cfknode.kernel.vehicle import Vec3
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,8 @@ class AdaptationTuning:
         doc="vertical cut-off for step_hold_s after an alarm, fast enough to track a mass step")
     step_thrust_rate: float = setting(unit="1/s", low=0, high=1000,
         doc="thrust_rate for step_hold_s after an alarm")
-    step_hold_s: float = setting(unit="s", low=0, high=5, doc="how long the step bandwidth and rate last after an alarm")
+    step_hold_s: float = setting(unit="s", low=0, high=5,
+        doc="how long the step bandwidth and rate last after an alarm")
     step_max_s: float = setting(unit="s", low=0, high=10, open_low=True,
         doc="a step is tracked at most this long after its first alarm; later alarms start a new step")
     oracle_delay_s: float = setting(unit="s", low=0, high=1,
@@ -84,13 +85,14 @@ class ControllerConfig:
     max_thrust_fraction: float = setting(low=0.5, high=1.0,
         doc="highest vertical thrust the MPC plans, as a fraction of the RPYT clamp's (a_z <= f T_max / m - g)")
     yaw_rate_gain: float = setting(unit="1/s", low=0, high=20, doc="proportional yaw tracking in the Mellinger layer")
-    max_yaw_rate_deg: float = setting(unit="deg/s", low=0, high=360, open_low=True, doc="largest yaw rate the Mellinger layer commands")
+    max_yaw_rate_deg: float = setting(unit="deg/s", low=0, high=360, open_low=True,
+        doc="largest yaw rate the Mellinger layer commands")
     geometric_kp: Vec3 = setting(unit="N/m", low=0, high=10, open_low=True,
         doc="firmware Mellinger kp_xy, kp_z (docs/hardware.md#mellinger); geometric controller and MPC fallback")
     geometric_kd: Vec3 = setting(unit="N/(m/s)", low=0, high=5,
         doc="firmware Mellinger kd_xy, kd_z (docs/hardware.md#mellinger)")
     adaptation: Literal["none", "l1", "dob", "oracle"] = setting(
-        doc="fast adaptation of what the model still gets wrong (flight/adaptation/): none | dob | l1 | oracle (simulation only)")
+        doc="fast adaptation of what the model gets wrong: none | dob | l1 | oracle (simulation only)")
     adaptation_settings: AdaptationTuning
 
 
@@ -102,9 +104,9 @@ class EstimatorConfig:
     latency: float = setting(unit="s", low=0, high=0.2,
         doc="mocap latency the estimator predicts across (0 = none assumed)")
     command_delay: float = setting(0.0, unit="s", low=0, high=0.2,
-        doc="from a sent command to the acceleration it makes: the MPC plans from the state predicted this far ahead; 0 = off")
+        doc="from a sent command to its acceleration: the MPC plans from the state this far ahead; 0 = off")
     attitude_lag: float = setting(0.17, unit="s", low=0, high=1,
-        doc="time constant of the lag the filter passes the commanded x/y acceleration through between frames; 0: at once")
+        doc="lag of the commanded x/y acceleration the filter predicts with between frames; 0: at once")
 
 
 @dataclass(frozen=True)

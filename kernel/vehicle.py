@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 from cfknode.kernel.setting import setting
 
 Vec3 = tuple[float, float, float]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
-from cfknode.kernel.setting import setting
 
+from cfknode.kernel.setting import setting
 
 
 @dataclass(frozen=True)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from cfknode.kernel.vehicle import Vec3
 from cfknode.kernel.setting import setting
+from cfknode.kernel.vehicle import Vec3
 
 
 @dataclass(frozen=True)

@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from cfknode.kernel.vehicle import Vec3
 from cfknode.kernel.setting import setting
+from cfknode.kernel.vehicle import Vec3
 
 
 @dataclass(frozen=True)

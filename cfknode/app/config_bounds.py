@@ -4,12 +4,13 @@ A value that parses but makes the controller or the safety layer unsafe (a 1 Hz 
 gravity, a zero time constant, a landing voltage above the take-off voltage) is refused when
 the configuration loads, with one line naming the key, the bound and the unit.
 
-``BOUNDS`` maps a dotted key to its range, read from the key's declaration (the ``setting`` on its
-field in the layer's settings module; the sources of the ranges are docs/configuration.md's). A key whose value is a list (``vehicle.inertia``)
-bounds every element; a key through a list of records (``sim.mass_changes.factor``) bounds that
-field of every record. ``CROSS_CHECKS`` are small pure functions of the whole config that
-return a one-line problem or ``None``. The ranges are for a Crazyflie 2.x class quadrotor
-(about 30 g, 1S LiPo) flown indoors on Earth; see docs/ for the sources of the defaults.
+``BOUNDS`` maps a dotted key to its range, read from the key's declaration (``setting`` on its field
+in the layer's settings module; docs/configuration.md lists them). A key whose value is a list
+(``vehicle.inertia``) bounds every element; a key through a list of records
+(``sim.mass_changes.factor``) bounds that field of every record. ``CROSS_CHECKS`` are small pure
+functions of the whole config that return a one-line problem or ``None``. The ranges are for a
+Crazyflie 2.x class quadrotor (about 30 g, 1S LiPo) flown indoors on Earth; their reasons are in
+docs/history.md.
 """
 
 from __future__ import annotations

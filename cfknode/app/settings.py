@@ -13,11 +13,11 @@ from typing import Any, Literal
 
 from cfknode.app.fleet.settings import FleetConfig
 from cfknode.flight.settings import ControllerConfig, EstimatorConfig, TrajectoryConfig
+from cfknode.kernel.setting import setting
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
 from cfknode.safety.settings import SafetyConfig
 from cfknode.sim_backend.settings import FaultsConfig, SimConfig
-from cfknode.kernel.setting import setting
 
 __all__ = ["Config", "DashboardConfig", "HardwareConfig", "LogConfig", "OnlineConfig", "RadioConfig"]
 
@@ -70,7 +70,7 @@ class OnlineConfig:
     monitor_floor: float = setting(unit="m/s^2", low=0, high=100,
         doc="estimator noise and command lag; a model is never dropped below this")
     latency: Literal["cpu", "fixed", "wall"] = setting(
-        doc="lockstep flights' delay from a window's end to its model flying: cpu | fixed | wall (flight/learning/latency.py)")
+        doc="lockstep flights' delay from a window's end to its model flying: cpu | fixed | wall")
     fixed_latency_s: float = setting(unit="s", low=0, high=60, doc="latency: fixed")
     latency_quantum_s: float = setting(unit="s", low=0, high=1, doc="latency: cpu")
     inject: FaultInjection
