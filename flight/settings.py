@@ -31,7 +31,7 @@ class AdaptationTuning:
         doc="without a fresh mocap pose this long the estimates are frozen")
     rebase_window_s: float = setting(unit="s", low=0, high=2, open_low=True,
         doc="recent ticks the offset is re-fitted over at a model swap")
-    thrust_lag_s: float | None = setting(
+    thrust_lag_s: float | None = setting(unit="s", low=0, high=0.5,
         doc="motor thrust lag the observer models; null: chosen in flight (flight/adaptation/thrust_lag.py)")
     thrust_lag_candidates_s: tuple[float, ...] = setting(unit="s", low=0.001, high=0.5,
         doc="the lags chosen among, with vehicle.motor_time_constant, when thrust_lag_s is null")

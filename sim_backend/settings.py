@@ -67,7 +67,7 @@ class SimConfig:
     mass_changes: tuple[MassChange, ...] = setting(doc="list of {t: s, factor: new mass / nominal mass}")
     wind: Vec3 = setting(unit="m/s", low=-20, high=20, doc="constant air velocity (acts through drag)")
     drag: Vec3 = setting(unit="N/(m/s)", low=0, high=1, doc="linear drag coefficients on air-relative velocity")
-    motor_time_constant: float | None = setting(None,
+    motor_time_constant: float | None = setting(None, unit="s", low=0, high=0.3,
         doc="the plant's motor thrust lag; null = vehicle.motor_time_constant")
     thrust_map_scale: float = setting(1.0, low=0.5, high=1.5, doc="true force per command / the vehicle config's")
     battery_sag_per_s: float = setting(0.0, unit="1/s", low=0, high=0.05,

@@ -42,8 +42,6 @@ __all__ = [
 _RULES: tuple[tuple[str, Any, str], ...] = (
     ("controller.adaptation_settings.thrust_scale_bounds", lambda v: 0 < v[0] <= 1 <= v[1], "[low, high] with 0 < low <= 1 <= high"),
     ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
-    ("controller.adaptation_settings.thrust_lag_s", lambda v: v is None or 0 <= v <= 0.5, "null or in [0, 0.5] s"),
-    ("sim.motor_time_constant", lambda v: v is None or 0 <= v <= 0.3, "null or in [0, 0.3] s"),
     ("knode.hidden", lambda v: len(v) >= 1 and all(0 < h <= 1024 for h in v), "a non-empty list of widths in 1..1024"),
     ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
     ("hardware.heartbeat_hz", lambda v: v == 0 or 2 <= v <= 50, "0 (off) or in [2, 50] Hz (the firmware allows 1 s)"),

@@ -96,7 +96,7 @@ def out_of_bounds(cfg: Config) -> str | None:
     """The first value outside its bound, as one line, or None."""
     for key, bound in BOUNDS.items():
         for label, value in leaves(cfg, key):
-            if not bound.contains(value):
+            if value is not None and not bound.contains(value):  # null: the key is not set (``X | None``)
                 return f"{label} = {_fmt(value)} is out of range: must be {bound.describe()}"
     return None
 
