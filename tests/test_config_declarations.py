@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import re
-from importlib import resources
 from pathlib import Path
 
 import pytest
 
 from cfknode.app.config import PACKAGED, _RULES, load_config
 from cfknode.app.config_bounds import BOUNDS, Bound
-from cfknode.app.config_docs import configuration_doc, packaged_keys
-from cfknode.app.declarations import declared, leaf_keys, yaml_comment
+from cfknode.app.config_docs import configuration_doc, packaged_keys, packaged_text, with_declared_comments
+from cfknode.app.declarations import declared, leaf_keys
 from cfknode.flight.adaptation.settings import AdaptationSettings
 from cfknode.flight.settings import AdaptationTuning
 
@@ -89,22 +87,15 @@ def test_every_key_has_a_one_line_meaning():
         assert d.doc.strip() not in ("", d.unit), f"{d.key}: the meaning only repeats the unit"
 
 
-def test_a_packaged_yaml_comment_is_the_declared_meaning():
-    decls = {d.key: d for d in declared()}
-    for name in PACKAGED:
-        stack: list[tuple[int, str]] = []
-        for line in resources.files("cfknode").joinpath(name).read_text().splitlines():
-            m = re.match(r"^(\s*)(\w+):\s*(.*)$", line)
-            if not m:
-                continue
-            indent, key, rest = len(m.group(1)), m.group(2), m.group(3)
-            while stack and stack[-1][0] >= indent:
-                stack.pop()
-            stack.append((indent, key))
-            dotted = ".".join(k for _, k in stack)
-            if dotted in decls:
-                comment = rest.split(" # ", 1)[1].strip() if " # " in rest else ""
-                assert comment == yaml_comment(decls[dotted]), f"{name}: {dotted}"
+@pytest.mark.parametrize("name", PACKAGED)
+def test_a_packaged_yaml_comment_is_the_declared_meaning(name):
+    text = packaged_text(name)
+    assert text == with_declared_comments(text), "run: python -m cfknode.app.config_docs --yaml"
+
+
+def test_a_wrong_comment_is_found():
+    text = packaged_text(USER_FILE).replace("# gravitational acceleration", "# gravity on the Moon")
+    assert "gravity on the Moon" in text and with_declared_comments(text) != text
 
 
 def test_the_committed_configuration_doc_is_the_generated_one():

@@ -1,12 +1,15 @@
 """docs/configuration.md, generated from the settings' declarations and the packaged YAML files.
 
-``python -m cfknode.app.config_docs > docs/configuration.md`` rewrites it;
-tests/test_config_declarations.py checks that the committed file is what this prints.
+``python -m cfknode.app.config_docs > docs/configuration.md`` rewrites it, and
+``python -m cfknode.app.config_docs --yaml`` rewrites the comment on each key's line of the packaged
+YAML files from the declared meaning and unit; tests/test_config_declarations.py checks both.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
+import sys
 from importlib import resources
 from typing import Any
 
@@ -14,14 +17,15 @@ import yaml
 
 from cfknode.app.config import PACKAGED, load_config
 from cfknode.app.config_bounds import BOUNDS
-from cfknode.app.declarations import Declared, declared
+from cfknode.app.declarations import Declared, declared, yaml_comment
 
-__all__ = ["configuration_doc", "flat_keys", "packaged_keys"]
+__all__ = ["configuration_doc", "flat_keys", "packaged_keys", "packaged_text", "with_declared_comments"]
 
 _HEAD = """# Configuration
 
 Generated from the settings' declarations by `python -m cfknode.app.config_docs > docs/configuration.md`;
-tests/test_config_declarations.py checks that this file is what it prints. Edit the declaration, not this.
+tests/test_config_declarations.py checks that this file is what it prints. Edit the declaration, not this;
+`python -m cfknode.app.config_docs --yaml` then rewrites the packaged YAML's comments to match.
 
 Each key is declared once, on its field in the layer's settings module (`setting(...)` from
 `cfknode.kernel.setting`: default where the field has one, unit, bounds, one-line meaning). The
@@ -51,6 +55,35 @@ def flat_keys(data: Any, prefix: str = "") -> list[str]:
 def packaged_keys(name: str) -> list[str]:
     """The leaf keys of one packaged file (``config/default.yaml`` or ``config/tuning.yaml``)."""
     return flat_keys(yaml.safe_load(resources.files("cfknode").joinpath(name).read_text()) or {})
+
+
+def packaged_text(name: str) -> str:
+    return resources.files("cfknode").joinpath(name).read_text()
+
+
+_KEY_LINE = re.compile(r"^(\s*)(\w+):(.*)$")
+_COMMENT_COLUMN = 28
+
+
+def with_declared_comments(text: str) -> str:
+    """A packaged YAML text with each declared key's comment made its declared meaning and unit."""
+    decls = {d.key: d for d in declared() if not d.record}
+    stack: list[tuple[int, str]] = []
+    out = []
+    for line in text.splitlines():
+        m = _KEY_LINE.match(line)
+        if m:
+            indent, key, rest = len(m.group(1)), m.group(2), m.group(3)
+            while stack and stack[-1][0] >= indent:
+                stack.pop()
+            stack.append((indent, key))
+            dotted = ".".join(k for _, k in stack)
+            if dotted in decls:
+                head = f"{m.group(1)}{key}:{rest.split(' # ', 1)[0].rstrip()}"
+                pad = f"{head:<{_COMMENT_COLUMN}}" if len(head) < _COMMENT_COLUMN else f"{head}  "
+                line = f"{pad}# {yaml_comment(decls[dotted])}"
+        out.append(line)
+    return "\n".join(out) + "\n"
 
 
 def _value(value: Any) -> str:
@@ -118,4 +151,9 @@ def configuration_doc() -> str:
 
 
 if __name__ == "__main__":
-    print(configuration_doc(), end="")
+    if sys.argv[1:] == ["--yaml"]:
+        for name in PACKAGED:
+            path = resources.files("cfknode").joinpath(name)
+            path.write_text(with_declared_comments(path.read_text()))  # the source tree (an editable install)
+    else:
+        print(configuration_doc(), end="")
