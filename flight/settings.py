@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from cfknode.kernel.setting import setting
 from cfknode.kernel.vehicle import Vec3
 
 
@@ -12,78 +13,116 @@ from cfknode.kernel.vehicle import Vec3
 class AdaptationTuning:
     """Gains and bounds of the fast adaptation layer (``cfknode.flight.adaptation.AdaptationSettings``)."""
 
-    bandwidth_hz: float
-    bandwidth_xy_hz: float
-    predictor_gain: float
-    adaptation_gain: float
-    thrust_rate: float
-    axis_rate: float
-    max_offset: float
-    thrust_scale_bounds: tuple[float, float]
-    axis_gain_bounds: tuple[float, float]
-    stale_pose_s: float
-    rebase_window_s: float
-    thrust_lag_s: float | None = None  # s, the motors' thrust lag the observer models; None: chosen in flight
-    thrust_lag_candidates_s: tuple[float, ...] = (0.015, 0.04, 0.08, 0.15)  # s, with the vehicle's, when None
-    step_threshold: float = 0.0  # vertical step detector's alarm level (noise-normalised CUSUM); 0 = off
-    step_bandwidth_hz: float = 10.0  # vertical bandwidth for ``step_hold_s`` after an alarm
-    step_thrust_rate: float = 400.0  # 1/s, thrust_rate for ``step_hold_s`` after an alarm
-    step_hold_s: float = 0.3  # s the fast estimate lasts after an alarm
-    step_max_s: float = 1.0  # s a step is tracked at most after its first alarm
-    oracle_delay_s: float = 0.0  # s, adaptation "oracle" only: the true mass is told this late
-    output_bandwidth_hz: float = 0.0  # dob: the vertical offset is the estimate low-passed again at this cut-off; 0 off
-    output_bandwidth_xy_hz: float = 0.0  # the same for x and y
-    offset_deadband: float = 0.0  # m/s^2: a horizontal offset well below it is shrunk toward 0; 0 off
-    engage_level: float = 0.0  # m/s^2: an axis's estimate acts once it is above this; 0 = always acts
-    engage_slow_level: float = float("inf")  # m/s^2: ... or once its slow mean is above this
-    engage_slow_s: float = 2.0  # s, time constant of that mean
-    release_s: float = 1.0  # s with both under half their levels before an axis lets go again
+    bandwidth_hz: float = setting(unit="Hz", low=0, high=50, open_low=True,
+        doc="cut-off of the vertical disturbance estimate (dob) / the l1 output filter, between steps")
+    bandwidth_xy_hz: float = setting(unit="Hz", low=0, high=50, open_low=True,
+        doc="the same for x and y: mocap noise and attitude lag enter there, and wind changes slowly")
+    predictor_gain: float = setting(unit="1/s", low=0, high=1000, open_low=True, doc="l1 velocity predictor feedback")
+    adaptation_gain: float = setting(low=0, high=100000.0, doc="l1 adaptive law gain (1/s^2)")
+    thrust_rate: float = setting(unit="1/s", low=0, high=200, doc="vertical error moved into the mass estimate")
+    axis_rate: float = setting(unit="1/s", low=0, high=200,
+        doc="x/y tilt effectiveness (measured vs commanded) learning rate; 0 = off")
+    max_offset: float = setting(unit="m/s^2", low=0, high=20, open_low=True, doc="largest acceleration offset per axis")
+    thrust_scale_bounds: tuple[float, float] = setting(unit="x nominal mass", low=0.1, high=10, open_low=True,
+        doc="estimated mass / nominal")
+    axis_gain_bounds: tuple[float, float] = setting(low=0.1, high=10, open_low=True,
+        doc="delivered / commanded tilt (the attitude loop reaches 0.8-1.2)")
+    stale_pose_s: float = setting(unit="s", low=0, high=1, open_low=True,
+        doc="without a fresh mocap pose this long the estimates are frozen")
+    rebase_window_s: float = setting(unit="s", low=0, high=2, open_low=True,
+        doc="recent ticks the offset is re-fitted over at a model swap")
+    thrust_lag_s: float | None = setting(unit="s", low=0, high=0.5,
+        doc="motor thrust lag the observer models; null: chosen in flight (flight/adaptation/thrust_lag.py)")
+    thrust_lag_candidates_s: tuple[float, ...] = setting(unit="s", low=0.001, high=0.5,
+        doc="the lags chosen among, with vehicle.motor_time_constant, when thrust_lag_s is null")
+    step_threshold: float = setting(low=0, high=1000,
+        doc="vertical step detector (dob): alarm level of a CUSUM of the velocity surprise, in noise units; 0 = off")
+    step_bandwidth_hz: float = setting(unit="Hz", low=0, high=50, open_low=True,
+        doc="vertical cut-off for step_hold_s after an alarm, fast enough to track a mass step")
+    step_thrust_rate: float = setting(unit="1/s", low=0, high=1000,
+        doc="thrust_rate for step_hold_s after an alarm")
+    step_hold_s: float = setting(unit="s", low=0, high=5,
+        doc="how long the step bandwidth and rate last after an alarm")
+    step_max_s: float = setting(unit="s", low=0, high=10, open_low=True,
+        doc="a step is tracked at most this long after its first alarm; later alarms start a new step")
+    oracle_delay_s: float = setting(unit="s", low=0, high=1,
+        doc="adaptation oracle (a bench reference) only: the true mass is told this late")
+    output_bandwidth_hz: float = setting(unit="Hz", low=0, high=50,
+        doc="dob: the vertical offset the MPC gets is the estimate low-passed again at this cut-off; 0: the estimate")
+    output_bandwidth_xy_hz: float = setting(unit="Hz", low=0, high=50,
+        doc="the same for x and y (0: the estimate itself)")
+    offset_deadband: float = setting(unit="m/s^2", low=0, high=5,
+        doc="a horizontal offset well below it is shrunk toward 0, smoothly (d^3/(d^2+b^2)); 0 = off")
+    engage_level: float = setting(unit="m/s^2", low=0, high=2,
+        doc="an axis's estimate acts once the error it sees there is above this (0 = always acts)")
+    engage_slow_level: float = setting(unit="m/s^2", low=0, high=2, open_low=True,
+        doc="... or once that error's mean over engage_slow_s is above this (a small one that persists)")
+    engage_slow_s: float = setting(unit="s", low=0, high=60, open_low=True,
+        doc="time constant of the mean engage_slow_level is compared with")
+    release_s: float = setting(unit="s", low=0, high=60,
+        doc="an axis lets go again after this long with both under half their levels")
 
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    kind: Literal["mpc", "knode-mpc", "geometric"]
-    model: str
-    rate_hz: float
-    horizon: int
-    dt: float
-    solver: Literal["rti", "ipopt"]
-    qp_solver: Literal["qrqp", "osqp"]
-    codegen: bool
-    q_position: Vec3
-    q_velocity: Vec3
-    r_acceleration: Vec3
-    terminal_scale: float
-    max_tilt_deg: float
-    min_thrust_fraction: float
-    max_thrust_fraction: float
-    yaw_rate_gain: float
-    max_yaw_rate_deg: float
-    geometric_kp: Vec3
-    geometric_kd: Vec3
-    adaptation: Literal["none", "l1", "dob", "oracle"]
+    kind: Literal["mpc", "knode-mpc", "geometric"] = setting(
+        doc="mpc (nominal model) | knode-mpc (nominal + KNODE residual, needs model) | geometric")
+    model: str = setting(doc="KNODE model file (cfknode train --out ...); setting it implies knode-mpc")
+    rate_hz: float = setting(unit="Hz", low=50, high=1000, doc="loop rate: estimator + MPC + Mellinger every tick")
+    horizon: int = setting(unit="nodes", low=2, high=200, doc="MPC nodes N")
+    dt: float = setting(unit="s", low=0, high=0.5, open_low=True, doc="s between MPC nodes (1 s horizon, as the paper)")
+    solver: Literal["rti", "ipopt"] = setting(doc="rti (one QP per tick, real time) | ipopt (converged reference)")
+    qp_solver: Literal["qrqp", "osqp"] = setting(doc="CasADi conic plugin used by rti: qrqp | osqp")
+    codegen: bool = setting(doc="compile the RTI step with the system C compiler (cached); falls back to the VM")
+    q_position: Vec3 = setting(low=0, high=1000000.0, doc="stage weights on position error, per axis")
+    q_velocity: Vec3 = setting(low=0, high=1000000.0, doc="stage weights on velocity error")
+    r_acceleration: Vec3 = setting(low=0, high=1000000.0, open_low=True,
+        doc="weights on commanded acceleration minus the reference's")
+    terminal_scale: float = setting(low=0, high=1000, doc="terminal weight = terminal_scale * stage weight")
+    max_tilt_deg: float = setting(unit="deg", low=5, high=60, doc="the attitude the Mellinger layer may ask for")
+    min_thrust_fraction: float = setting(low=0, high=0.9,
+        doc="lowest commanded thrust as a fraction of hover (a_z >= -(1 - f) g): keeps attitude authority")
+    max_thrust_fraction: float = setting(low=0.5, high=1.0,
+        doc="highest vertical thrust the MPC plans, as a fraction of the RPYT clamp's (a_z <= f T_max / m - g)")
+    yaw_rate_gain: float = setting(unit="1/s", low=0, high=20, doc="proportional yaw tracking in the Mellinger layer")
+    max_yaw_rate_deg: float = setting(unit="deg/s", low=0, high=360, open_low=True,
+        doc="largest yaw rate the Mellinger layer commands")
+    geometric_kp: Vec3 = setting(unit="N/m", low=0, high=10, open_low=True,
+        doc="firmware Mellinger kp_xy, kp_z (docs/hardware.md#mellinger); geometric controller and MPC fallback")
+    geometric_kd: Vec3 = setting(unit="N/(m/s)", low=0, high=5,
+        doc="firmware Mellinger kd_xy, kd_z (docs/hardware.md#mellinger)")
+    adaptation: Literal["none", "l1", "dob", "oracle"] = setting(
+        doc="fast adaptation of what the model gets wrong: none | dob | l1 | oracle (simulation only)")
     adaptation_settings: AdaptationTuning
-    cone_reserve_deg: float = 5.0  # deg the thrust cone leaves horizontal tracking at the clamp (fast adaptation only)
+    cone_reserve_deg: float = setting(5.0, unit="deg", low=0, high=20,
+        doc="tilt the thrust cone always leaves horizontal tracking at the clamp (fast adaptation only)")
 
 
 @dataclass(frozen=True)
 class EstimatorConfig:
-    process_accel_std: float
-    position_std: float
-    latency: float
-    command_delay: float = 0.0  # s from a sent command to its acceleration; the plan starts that far ahead
-    attitude_lag: float = 0.0  # s, time constant from a commanded horizontal acceleration to the one flown; 0: at once
+    process_accel_std: float = setting(unit="m/s^2", low=0, high=100, open_low=True,
+        doc="white-acceleration process noise of the constant-velocity Kalman filter")
+    position_std: float = setting(unit="m", low=1e-05, high=0.1, doc="mocap position noise assumed by the filter")
+    latency: float = setting(unit="s", low=0, high=0.2,
+        doc="mocap latency the estimator predicts across (0 = none assumed)")
+    command_delay: float = setting(0.0, unit="s", low=0, high=0.2,
+        doc="from a sent command to its acceleration: the MPC plans from the state this far ahead; 0 = off")
+    attitude_lag: float = setting(0.17, unit="s", low=0, high=1,
+        doc="lag of the commanded x/y acceleration the filter predicts with between frames; 0: at once")
 
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "circle", "figure8"]
-    radius: float
-    speed: float
-    center: tuple[float, float]
-    height: float
-    duration: float
-    takeoff_duration: float
-    settle_duration: float
-    land_duration: float
-    ramp_duration: float
+    kind: Literal["hover", "circle", "figure8"] = setting(doc="hover | circle | figure8")
+    radius: float = setting(unit="m", low=0.05, high=5, doc="m (circle radius; figure-8 half-width)")
+    speed: float = setting(unit="m/s", low=0.01, high=5,
+        doc="tangential speed on the circle / peak-ish speed on the figure-8")
+    center: tuple[float, float] = setting(unit="m", low=-50, high=50, doc="world x y of the pattern")
+    height: float = setting(unit="m", low=0.1, high=5, doc="flight altitude")
+    duration: float = setting(unit="s", low=0, high=3600, doc="s on the pattern (circle or figure-8) or in hover")
+    takeoff_duration: float = setting(unit="s", low=0.5, high=60,
+        doc="smooth climb from the start pose to the pattern's first point")
+    settle_duration: float = setting(unit="s", low=0, high=60, doc="hover at the pattern start before it begins")
+    land_duration: float = setting(unit="s", low=0.5, high=60, doc="smooth descent to the ground")
+    ramp_duration: float = setting(unit="s", low=0, high=60,
+        doc="speed ramp-in at the start of the pattern (0 = step to full speed)")

@@ -111,6 +111,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     },
     "test_config.py": FAST,
     "test_config_bounds.py": FAST,
+    "test_config_declarations.py": FAST,
     "test_dashboard.py": {
         "*": BOTH,
         "test_costly_frames_are_spaced_out_to_stay_within_the_budget": FAST,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 import typing
 
 import pytest
@@ -82,6 +83,9 @@ def _numeric_keys(cls: type, prefix: str = "") -> list[str]:
     for f in dataclasses.fields(cls):
         tp = typing.get_type_hints(cls)[f.name]
         args = typing.get_args(tp)
+        if isinstance(tp, types.UnionType) and len(args) == 2 and type(None) in args:  # ``X | None``
+            tp = args[0] if args[1] is type(None) else args[1]
+            args = typing.get_args(tp)
         inner = args[0] if typing.get_origin(tp) is tuple and args else tp
         if dataclasses.is_dataclass(tp):
             out += _numeric_keys(tp, f"{prefix}{f.name}.")
@@ -101,7 +105,16 @@ def test_every_numeric_key_has_a_bound_and_the_defaults_are_inside():
     cfg = load_config()
     for key, bound in BOUNDS.items():
         for label, value in leaves(cfg, key):
-            assert bound.contains(value), (label, value)
+            assert value is None or bound.contains(value), (label, value)
+
+
+@pytest.mark.parametrize("key, high", [("sim.motor_time_constant", 0.3),
+                                       ("controller.adaptation_settings.thrust_lag_s", 0.5)])
+def test_an_optional_number_is_bounded_when_set_and_free_when_null(key, high):
+    load_config(overrides={key: None})
+    load_config(overrides={key: high})
+    with pytest.raises(ConfigError, match=f"{key} = {high * 2:g} is out of range: must be 0 to {high:g} s"):
+        load_config(overrides={key: high * 2})
 
 
 def test_bound_descriptions():

@@ -1,7 +1,9 @@
 """Configuration: the settings dataclasses, filled from default.yaml, a user file and CLI overrides.
 
-The defaults live only in ``config/default.yaml`` (with their sources); the dataclasses
-(``cfknode.app.settings`` and each layer's ``settings``) are the schema. A wrong key, a wrong
+The defaults live in ``config/default.yaml`` (the keys a user sets) and ``config/tuning.yaml`` (the
+tuning and bench keys), or on the field where it has one; the dataclasses (``cfknode.app.settings``
+and each layer's ``settings``) are the schema, each field declaring its unit, bounds and meaning
+(``cfknode.kernel.setting``; docs/configuration.md lists them). A wrong key, a wrong
 type or a missing file raises ``ConfigError`` whose one-line message names the key or the file.
 """
 
@@ -35,117 +37,40 @@ __all__ = [
 ]
 
 
-# Checks that a type alone cannot express: (key, predicate, what it must be).
+# Checks that neither a type nor a declared range (``setting(low=..., high=...)``) can express:
+# (key, predicate, what it must be). A plain range belongs on the field.
 _RULES: tuple[tuple[str, Any, str], ...] = (
-    ("vehicle.mass", lambda v: v > 0, "> 0"),
-    ("vehicle.thrust_cmd_clamp", lambda v: 0 < v <= 65535, "in 1..65535"),
-    ("controller.rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
-    ("controller.horizon", lambda v: 2 <= v <= 200, "in 2..200"),
-    ("controller.dt", lambda v: v > 0, "> 0"),
-    ("controller.max_tilt_deg", lambda v: 0 < v < 80, "in (0, 80)"),
-    ("controller.min_thrust_fraction", lambda v: 0 <= v < 1, "in [0, 1)"),
-    ("controller.max_thrust_fraction", lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
-    ("controller.cone_reserve_deg", lambda v: 0 <= v <= 20, "in [0, 20] deg"),
-    ("controller.adaptation_settings.bandwidth_hz", lambda v: 0 < v <= 50, "in (0, 50] Hz"),
-    ("controller.adaptation_settings.max_offset", lambda v: v > 0, "> 0 m/s^2"),
     ("controller.adaptation_settings.thrust_scale_bounds", lambda v: 0 < v[0] <= 1 <= v[1], "[low, high] with 0 < low <= 1 <= high"),
     ("controller.adaptation_settings.axis_gain_bounds", lambda v: 0.5 <= v[0] <= 1 <= v[1] <= 2, "[low, high] within [0.5, 2] around 1"),
-    ("controller.adaptation_settings.stale_pose_s", lambda v: v > 0, "> 0 s"),
-    ("controller.adaptation_settings.rebase_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
-    ("controller.adaptation_settings.thrust_lag_s", lambda v: v is None or 0 <= v <= 0.5, "null or in [0, 0.5] s"),
-    ("estimator.latency", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
-    ("estimator.command_delay", lambda v: 0 <= v <= 0.2, "in [0, 0.2] s"),
-    ("estimator.attitude_lag", lambda v: 0 <= v <= 1, "in [0, 1] s"),
-    ("trajectory.radius", lambda v: v > 0, "> 0"),
-    ("trajectory.speed", lambda v: v > 0, "> 0"),
-    ("trajectory.height", lambda v: 0 < v <= 5, "in (0, 5] m"),
-    ("trajectory.duration", lambda v: v >= 0, ">= 0"),
-    ("trajectory.takeoff_duration", lambda v: v > 0, "> 0"),
-    ("trajectory.land_duration", lambda v: v > 0, "> 0"),
-    ("trajectory.settle_duration", lambda v: v >= 0, ">= 0"),
-    ("trajectory.ramp_duration", lambda v: v >= 0, ">= 0"),
-    ("sim.dt", lambda v: 0 < v <= 0.01, "in (0, 0.01] s"),
-    ("sim.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000]"),
-    ("sim.mocap_dropout_prob", lambda v: 0 <= v < 1, "in [0, 1)"),
-    ("sim.motor_time_constant", lambda v: v is None or 0 <= v <= 0.3, "null or in [0, 0.3] s"),
-    ("sim.thrust_map_scale", lambda v: 0.5 <= v <= 1.5, "in [0.5, 1.5]"),
-    ("sim.battery_sag_per_s", lambda v: 0 <= v <= 0.05, "in [0, 0.05] per s"),
-    ("sim.attitude_gain", lambda v: 0.5 <= v <= 1.5, "in [0.5, 1.5]"),
-    ("sim.yaw_gain", lambda v: 0.25 <= v <= 3.0, "in [0.25, 3]"),
-    ("knode.queue_size", lambda v: 1 <= v <= 10, "in 1..10"),
     ("knode.hidden", lambda v: len(v) >= 1 and all(0 < h <= 1024 for h in v), "a non-empty list of widths in 1..1024"),
-    ("training.epochs", lambda v: v >= 1, ">= 1"),
-    ("training.lr", lambda v: v > 0, "> 0"),
-    ("training.validation_fraction", lambda v: 0 < v < 1, "in (0, 1)"),
-    ("online.t_col", lambda v: 0 < v <= 60, "in (0, 60] s"),
-    ("online.epochs", lambda v: v >= 1, ">= 1"),
-    ("online.lr", lambda v: v > 0, "> 0"),
-    ("online.weight_decay", lambda v: v >= 0, ">= 0"),
-    ("online.replay_windows", lambda v: 0 <= v <= 20, "in 0..20"),
-    ("online.gate_min_pairs", lambda v: v >= 2, ">= 2"),
     ("online.gate_control_gain", lambda v: 0 < v[0] < 1 < v[1], "[low, high] with 0 < low < 1 < high"),
-    ("online.gate_max_cross_gain", lambda v: v >= 0, ">= 0"),
-    ("online.gate_max_tilt_climb", lambda v: v >= 0, ">= 0 m/s^2"),
-    ("online.gate_layer_margin", lambda v: 0 <= v < 1, "in [0, 1)"),
-    ("online.gate_layer_steps", lambda v: 1 <= v <= 400, "in 1..400"),
-    ("online.gate_layer_min_gain", lambda v: 0 <= v <= 10, "in [0, 10] m/s^2"),
-    ("online.trainer_timeout", lambda v: v > 0, "> 0 s"),
-    ("online.max_restarts", lambda v: v >= 0, ">= 0"),
-    ("online.rollback_ticks", lambda v: v >= 1, ">= 1"),
-    ("online.rollback_fallbacks", lambda v: v >= 1, ">= 1"),
-    ("online.monitor_window_s", lambda v: 0 < v <= 2, "in (0, 2] s"),
-    ("online.monitor_every_ticks", lambda v: v >= 1, ">= 1"),
-    ("online.monitor_margin", lambda v: v >= 1, ">= 1"),
-    ("online.monitor_floor", lambda v: v >= 0, ">= 0 m/s^2"),
-    ("online.fixed_latency_s", lambda v: 0 <= v <= 60, "in [0, 60] s"),
-    ("online.latency_quantum_s", lambda v: 0 <= v <= 1, "in [0, 1] s"),
-    ("radio.tx_rate_hz", lambda v: 0 < v <= 500, "in (0, 500]"),
-    ("radio.stale_hold_slots", lambda v: v >= 1, ">= 1"),
-    ("radio.stale_stop_s", lambda v: 0 < v < 2, "in (0, 2) s (the firmware locks at 2 s)"),
-    ("dashboard.refresh_hz", lambda v: 0 < v <= 30, "in (0, 30] Hz"),
-    ("safety.fence_margin", lambda v: v >= 0, ">= 0"),
-    ("safety.fence_stop_distance", lambda v: v > 0, "> 0"),
-    ("safety.mocap_hold_s", lambda v: v > 0, "> 0"),
-    ("safety.hold_thrust_factor", lambda v: 0 < v < 1, "in (0, 1)"),
-    ("safety.link_silence_s", lambda v: v > 0, "> 0"),
-    ("safety.overrun_ticks", lambda v: v >= 1, ">= 1"),
-    ("safety.battery_filter_s", lambda v: v > 0, "> 0"),
-    ("safety.max_tilt_deg", lambda v: 0 < v < 180, "in (0, 180)"),
-    ("safety.max_tracking_error", lambda v: v > 0, "> 0"),
-    ("safety.max_fallback_s", lambda v: v > 0, "> 0"),
-    ("safety.land_speed", lambda v: v > 0, "> 0"),
-    ("safety.preflight_timeout_s", lambda v: v > 0, "> 0"),
-    ("faults.battery_drop_to", lambda v: v > 0, "> 0 V"),
-    ("hardware.mocap_connect_timeout", lambda v: v > 0, "> 0 s"),
-    ("hardware.mocap_rate_hz", lambda v: 0 < v <= 1000, "in (0, 1000] Hz"),
-    ("hardware.radio_connect_timeout", lambda v: v > 0, "> 0 s"),
-    ("hardware.preflight_settle", lambda v: 0.2 <= v <= 30, "in [0.2, 30] s"),
-    ("hardware.preflight_position_tolerance", lambda v: v > 0, "> 0 m"),
-    ("hardware.preflight_max_tilt_deg", lambda v: 0 < v < 90, "in (0, 90)"),
-    ("hardware.extpos_std", lambda v: v > 0, "> 0 m"),
-    ("hardware.extquat_std", lambda v: v > 0, "> 0"),
     ("hardware.heartbeat_hz", lambda v: v == 0 or 2 <= v <= 50, "0 (off) or in [2, 50] Hz (the firmware allows 1 s)"),
-    ("fleet.size", lambda v: 0 <= v <= 16, "in 0..16"),
-    ("fleet.stack_spacing", lambda v: v > 0, "> 0 m"),
-    ("fleet.ground_spacing", lambda v: v > 0, "> 0 m"),
-    ("fleet.min_separation", lambda v: v >= 0, ">= 0 m (0: off)"),
-    ("fleet.hold_s", lambda v: v >= 0, ">= 0 s"),
-    ("fleet.radio_budget_pps", lambda v: v > 0, "> 0 packets/s"),
-    ("fleet.ping_hz", lambda v: v >= 0, ">= 0 Hz"),
-    ("fleet.drones_per_sim_radio", lambda v: v >= 1, ">= 1"),
     ("fleet.ray_radio_resource", lambda v: bool(v.strip()) and not re.search(r"[{}]", v.replace("{radio}", "")),
      "a Ray resource name, where {radio} stands for the radio index"),
-    ("sim.downwash.peak_fraction", lambda v: 0 <= v <= 1, "in [0, 1]"),
-    ("sim.downwash.height", lambda v: v > 0, "> 0 m"),
-    ("sim.downwash.radius", lambda v: v > 0, "> 0 m"),
-    ("hardware.telemetry_hz", lambda v: 0.4 <= v <= 100, "in [0.4, 100] Hz (log periods 10..2540 ms)"),
 )
 
 
+PACKAGED = ("config/default.yaml", "config/tuning.yaml")  # the keys a user sets; the tuning and bench keys
+
+
 def default_dict() -> dict[str, Any]:
-    """The default configuration as a plain nested dict (from default.yaml)."""
-    text = resources.files("cfknode").joinpath("config/default.yaml").read_text()
-    return yaml.safe_load(text)
+    """The default configuration as a plain nested dict: default.yaml and tuning.yaml, which share no key."""
+    data: dict[str, Any] = {}
+    for name in PACKAGED:
+        data = _union(data, yaml.safe_load(resources.files("cfknode").joinpath(name).read_text()), name, "")
+    return data
+
+
+def _union(a: Mapping[str, Any], b: Mapping[str, Any], name: str, prefix: str) -> dict[str, Any]:
+    out = dict(a)
+    for key, value in b.items():
+        if key not in a:
+            out[key] = value
+        elif isinstance(a[key], dict) and isinstance(value, dict):
+            out[key] = _union(a[key], value, name, f"{prefix}{key}.")
+        else:
+            raise ConfigError(f"config key '{prefix}{key}' is set twice in the packaged files (again in {name})")
+    return out
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:

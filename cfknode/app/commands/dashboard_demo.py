@@ -37,7 +37,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--demo", action="store_true", required=True, help="fly the demo flight")
     parser.add_argument("--headless", action="store_true", help="fly without the dashboard")
     parser.add_argument("--log-dir", default="flights", help="directory for the flight log")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key (every key: docs/configuration.md)")
     args = parser.parse_args(argv)
     cfg = load_config(overrides={**DEMO_OVERRIDES, "log.dir": args.log_dir, **dict(map(parse_override, args.set))})
     console = Console()

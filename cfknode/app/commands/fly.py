@@ -41,7 +41,8 @@ FLAGS: dict[str, str] = {
 def add_config_arguments(p: argparse.ArgumentParser) -> None:
     """The options every command that builds a flight configuration shares."""
     p.add_argument("--config", help="YAML file overriding the defaults")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config key (every key: docs/configuration.md)")
 
 
 def add_hardware_arguments(p: argparse.ArgumentParser) -> None:

@@ -20,7 +20,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", choices=["rti", "ipopt"], help="override controller.solver")
     p.add_argument("--qp-solver", dest="qp_solver", choices=["qrqp", "osqp"], help="override controller.qp_solver")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a key of the flight's config (e.g. controller.q_position=[80,80,80])")
+                   help="override a key of the flight's config (e.g. controller.q_position=[80,80,80]; every key: "
+                        "docs/configuration.md)")
     p.add_argument("--csv", help="write logged and replayed commands per tick to this CSV file")
     p.add_argument("--png", help="plot logged and replayed commands to this PNG file")
     p.add_argument("--json", action="store_true", help="print the comparison as one JSON object")

@@ -5,18 +5,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from cfknode.kernel.setting import setting
+
 
 @dataclass(frozen=True)
 class FleetConfig:
-    size: int  # drones; 0 or 1 is the single-drone flight (``--fleet N`` sets it)
-    layout: Literal["ring", "stack"]  # ring: evenly spaced phases on one circle; stack: same circle, stacked heights
-    stack_spacing: float  # m between the heights of stacked drones
-    ground_spacing: float  # m between stacked drones' start positions (side by side on the ground)
-    min_separation: float  # m: refused before take-off if the references come closer; held and landed in flight
-    hold_s: float  # s a pair that came too close hovers in place before it lands
-    on_fault: Literal["land_all", "continue", "hold"]  # what the other drones do when one drone's flight fails
-    radio_budget_pps: float  # packets/s one radio carries in each direction (docs/hardware.md#radio-budget)
-    ping_hz: float  # cflib's link-statistics ping, per link
-    drones_per_sim_radio: int  # simulated radios: sim://N is on simulated radio N // drones_per_sim_radio
-    name_prefix: str  # drone names: <prefix>1, <prefix>2, ... (log channels /cf1/state, e-stop sim-cf1)
-    ray_radio_resource: str  # --executor ray: the Ray resource a drone's actor needs; "{radio}" is its radio index
+    size: int = setting(unit="drones", low=0, high=16, doc="0 or 1 flies one drone")
+    layout: Literal["ring", "stack"] = setting(
+        doc="ring: evenly spaced around the circle; stack: same circle, heights stack_spacing apart")
+    stack_spacing: float = setting(unit="m", low=0, high=5, open_low=True, doc="between stacked heights")
+    ground_spacing: float = setting(unit="m", low=0, high=5, open_low=True,
+        doc="between stacked drones' start positions")
+    min_separation: float = setting(unit="m", low=0, high=5,
+        doc="m (0: off); Crazyswarm's downwash ellipsoid is 0.12 m wide and 0.3 m tall")
+    hold_s: float = setting(unit="s", low=0, high=10, doc="s a pair that came too close hovers in place before landing")
+    on_fault: Literal["land_all", "continue", "hold"] = setting(
+        doc="land_all | continue | hold: what the others do when one drone's flight fails")
+    radio_budget_pps: float = setting(unit="packets/s", low=50, high=2000,
+        doc="packets/s per Crazyradio in each direction (docs/hardware.md#radio-budget)")
+    ping_hz: float = setting(unit="Hz", low=0, high=100, doc="cflib's link-statistics ping (every 100 ms) on each link")
+    drones_per_sim_radio: int = setting(unit="drones", low=1, high=16,
+        doc="sim://N shares simulated radio N // 2 (the budget applies to it as to a real one)")
+    name_prefix: str = setting(doc="drones cf1, cf2, ...: log channels /cf1/state, e-stop names sim-cf1")
+    ray_radio_resource: str = setting(
+        doc="--executor ray: the Ray resource of the node with the drone's radio (docs/fleet-ray.md)")
