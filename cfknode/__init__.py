@@ -37,6 +37,7 @@ _EXPORTS = {
     "OnlineStats": "cfknode.flight.learning.records",
     "RoundRecord": "cfknode.flight.learning.records",
     "Solver": "cfknode.flight.controller",
+    "SolverStats": "cfknode.flight.solver_stats",
     "SwapEvent": "cfknode.flight.learning.records",
     "TickObserver": "cfknode.flight.controller",
     "AttitudeSetpoint": "cfknode.kernel.setpoint",

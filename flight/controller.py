@@ -25,6 +25,7 @@ from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import command_saturated, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.settings import ControllerConfig
+from cfknode.flight.solver_stats import SolverStats
 from cfknode.kernel.reference import RefSamples
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.kernel.vehicle import VehicleConfig
@@ -47,6 +48,10 @@ class Solver(Protocol):
     backend: str
 
     def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any: ...
+
+    def stats(self) -> SolverStats:
+        """Solves, failures and rescues so far."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from cfknode.flight.solver_stats import SolverStats
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.flight.mpc_codegen import CompiledFunction, casadi_link_flags, compile_cached
@@ -90,6 +91,8 @@ class TranslationalMpc:
         vehicle: VehicleConfig,
         cache_dir: str | Path | None = None,
     ) -> None:
+        """``cache_dir``: where compiled code is kept (None: ``ctrl.cache_dir``, else the user's cache)."""
+        cache_dir = cache_dir if cache_dir is not None else ctrl.cache_dir
         self.ctrl = ctrl
         self.vehicle = vehicle
         self.horizon = ctrl.horizon
@@ -118,6 +121,8 @@ class TranslationalMpc:
             self.f_max = ctrl.max_thrust_fraction * vehicle.max_thrust / vehicle.mass
         self._residual_set = False
         self.rescues = 0  # solves whose first answer failed its KKT check and were solved again (see solve)
+        self.solves = 0
+        self.failures = 0
         self._w0 = np.zeros(nw)
         self._lx0 = np.zeros(nw)
         self._la0 = np.zeros(ng)
@@ -174,6 +179,7 @@ class TranslationalMpc:
         Wrong array shapes are wiring bugs and do raise (``ValueError``).
         """
         t0 = time.perf_counter()
+        self.solves += 1
         n = self.horizon
         np.copyto(self._x0, x0)
         np.copyto(self._ref_p, ref.p)
@@ -231,7 +237,12 @@ class TranslationalMpc:
             return "nonfinite_solution"
         return "ok"
 
+    def stats(self) -> SolverStats:
+        """Solves, failures and rescues since the MPC was built (the ``Solver`` protocol)."""
+        return SolverStats(self.solves, self.failures, self.rescues)
+
     def _failure(self, status: str, t0: float) -> MpcSolution:
+        self.failures += 1
         x_pred, u_pred = self._failed_pred
         return MpcSolution(np.zeros(NU), False, status, time.perf_counter() - t0, x_pred.copy(), u_pred.copy())
 

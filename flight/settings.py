@@ -96,6 +96,8 @@ class ControllerConfig:
     adaptation_settings: AdaptationTuning
     cone_reserve_deg: float = setting(5.0, unit="deg", low=0, high=20,
         doc="tilt the thrust cone always leaves horizontal tracking at the clamp (fast adaptation only)")
+    cache_dir: str | None = setting(None, doc="folder for the MPC's compiled code (null: $XDG_CACHE_HOME/cfknode, "
+                                               "else ~/.cache/cfknode)")
 
 
 @dataclass(frozen=True)

@@ -66,6 +66,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_online_learning_writes_the_documented_log_protocol": BOTH,
         "test_a_simulator_that_passes_the_exact_state_every_tick_raises_no_false_alarm": FLIES,
         "test_with_the_exact_state_a_mass_step_is_taken_and_tracked_a_bounded_time": FLIES,
+        "test_the_solver_reports_its_statistics_and_compiles_into_the_configured_cache": (SLOW,),
     },
     "test_bench_executor.py": {
         "*": BOTH,

@@ -126,3 +126,21 @@ def test_online_learning_writes_the_documented_log_protocol():
             controller.step(t, _state(t, ref.p[0], ref.v[0]), circle)
     assert learner.stats.rounds_sent > 0
     assert {topic for topic, _, _ in log.writes} & {"/training", "/model"}
+
+
+def test_the_solver_reports_its_statistics_and_compiles_into_the_configured_cache(tmp_path):
+    import dataclasses
+
+    from cfknode.flight.mpc import TranslationalMpc
+
+    cfg = load_config(overrides={"controller.cache_dir": str(tmp_path / "cache")})
+    mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
+    controller = cfknode.Controller(cfg.controller, cfg.vehicle, solver=mpc, ground_z=0.0)
+    circle = cfknode.Circle(radius=0.5, speed=0.4, height=1.0)
+    for k in range(5):
+        controller.step(k / 400, _state(k / 400, [0.5, 0, 1.0]), circle)
+    stats = controller.solver.stats()
+    assert isinstance(stats, cfknode.SolverStats) and stats.solves == 5 and stats.failures == 0
+    if mpc.compiled is not None:  # a C compiler is on this machine: the code went where it was told
+        assert any((tmp_path / "cache").rglob("*.so"))
+    assert dataclasses.asdict(stats)["rescues"] == mpc.rescues
