@@ -305,8 +305,7 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
         outcome = sup.outcome()
         online = learner.summary_fields() if learner is not None else {}
         summary = compute_summary(
-            t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
-            window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
+            rec, window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
             extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
                    "safety_state": outcome.state.value, "safety_cause": outcome.cause, "fallback_ticks": rec.fallbacks,
                    "controller": _controller_label(cfg, bool(cfg.controller.model), learner is not None),

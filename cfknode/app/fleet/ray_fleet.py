@@ -362,8 +362,7 @@ def _ended(text: str, cause: str, t: float) -> FlightResult:
     from cfknode.app.ui.summary import compute_summary
 
     empty = FlightRecord.empty(0)
-    summary = compute_summary(t=empty.t, p=empty.p, p_ref=empty.p_ref, compute_s=empty.compute_s,
-                              solve_s=empty.solve_s, missed=empty.missed, window=(0.0, 0.0), wall_time=0.0,
+    summary = compute_summary(empty, window=(0.0, 0.0), wall_time=0.0,
                               extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": cause})
     return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, cause, t))
 
