@@ -230,8 +230,8 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
 @dataclass(frozen=True)
 class FleetPlan:
     """What a fleet flight flies, settled before the drones connect: per drone (in ``names`` order)
-    its reference, model slot, MPC and e-stop mailbox; the radio load, the log's name and the
-    forced config changes to log at t=0."""
+    its reference, model slot, MPC (both empty where each drone builds its own: Ray actors) and
+    e-stop mailbox; the radio load, the log's name and the forced config changes to log at t=0."""
 
     names: Sequence[str]
     refs: Sequence[HoldableReference]
