@@ -34,7 +34,7 @@ from cfknode.flight.tick_guard import GuardedLog, hand_back
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.app.ui.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
-from cfknode.safety.supervisor import ERROR_RECORD, Outcome, Supervisor, SupervisorInputs
+from cfknode.safety.supervisor import ERROR_RECORD, Outcome, SupervisedFlight, Supervisor, SupervisorInputs
 
 
 _logger = logging.getLogger(__name__)
@@ -58,9 +58,9 @@ def build_supervisor(
     inputs: SupervisorInputs = SupervisorInputs(),
 ) -> Supervisor:
     """The safety supervisor for ``cfg``'s flight (the robot's name in messages on hardware)."""
-    return Supervisor(cfg.safety, radio, trajectory=trajectory, vehicle=cfg.vehicle, log=log,
-                      rate_hz=cfg.controller.rate_hz, deadlines_apply=deadlines_apply, inputs=inputs,
-                      robot=cfg.hardware.robot if cfg.backend == "cf" else "")
+    flight = SupervisedFlight(trajectory, cfg.vehicle, cfg.controller.rate_hz, deadlines_apply,
+                              robot=cfg.hardware.robot if cfg.backend == "cf" else "")
+    return Supervisor(cfg.safety, radio, flight, log=log, inputs=inputs)
 
 
 def build_controller(cfg: Config) -> TranslationalMpc | None:
