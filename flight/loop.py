@@ -120,195 +120,275 @@ async def fly(parts: FlightParts) -> FlightRecord:
     in lockstep) or the supervisor itself raising stops the motors and ends the loop at once:
     the radio's hand-back then cuts them.
     """
-    controller, traj, sup = parts.controller, parts.trajectory, parts.supervisor
-    period = 1.0 / controller.settings.rate_hz
-    rec = FlightRecord.empty(int(np.ceil((traj.duration + 0.5) / period)) + 1)
-    acc_prev = np.zeros(3)
-    last_pose_t = -np.inf
-    wall_start = time.perf_counter()
-    k = 0
-
-    def fault(part: str, exc: BaseException, action: str) -> None:
-        try:
-            sup.internal_error(part, exc, action)
-        except Exception:  # noqa: BLE001 - the supervisor could not even record it: nothing more to do here
-            pass
-
-    def detached(part: str, exc: BaseException) -> None:
-        fault(part, exc, ERROR_RECORD)
-
-    log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
-    log.report_to(detached)
-    observers = [GuardedObserver(o, detached) for o in parts.observers]
-    inner_observers = list(controller.observers)
-    controller.observers[:] = [GuardedObserver(o, detached) for o in inner_observers]
-    controller_failed = estimator_failed = False
-    imu = parts.imu
-    logs_imu = imu is not None  # a flight with an IMU logs what each tick saw of it, NaN for nothing yet
-    held: RefSamples | None = None  # the hold reference once the trajectory has raised
+    loop = _Loop(parts)
+    sup = parts.supervisor
     try:
         signals = stop_signal_handler(sup) if parts.signals else contextlib.nullcontext(False)
         with signals, estop_watch(sup, parts.estop):
             while not sup.finished:
-                t_tick = k * period
                 try:
-                    await parts.clock.sleep_until(t_tick)
-                    now = parts.clock.now()
-                except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
-                    fault("the clock (the simulator in lockstep)", exc, ERROR_STOP)
+                    await loop.tick()
+                except _Halt:
                     break
-                # Read before the tick's timer starts: in lockstep the radio waits here for the simulator's
-                # log packets to cross cflib's thread, which is the simulation's time, not the tick's.
-                imu_sample = None
-                if imu is not None:
-                    try:
-                        imu_sample = imu.latest(now)
-                    except Exception as exc:  # noqa: BLE001 - fly on without it, as a flight with no IMU
-                        imu = None
-                        fault("the IMU source", exc, ERROR_RECORD)
-                start = time.perf_counter()
-                try:
-                    pose = parts.mocap.latest(now)
-                except Exception as exc:  # noqa: BLE001
-                    fault("the mocap source", exc, ERROR_LAND)
-                    pose = None
-                try:
-                    fresh = pose is not None and pose.t > last_pose_t and sup.accept_pose(now, pose)
-                    if pose is not None:
-                        last_pose_t = max(last_pose_t, pose.t)
-                except Exception as exc:  # noqa: BLE001
-                    fault("the supervisor", exc, ERROR_STOP)
-                    break
-                est = None
-                if not estimator_failed:
-                    try:
-                        if fresh:
-                            parts.estimator.update(pose)
-                        est = parts.estimator.predict(now, acc_prev)
-                    except Exception as exc:  # noqa: BLE001 - no state to fly on, not even the fallback's
-                        estimator_failed = True
-                        fault("the estimator", exc, ERROR_STOP)
-                        est = None
-                if est is not None and imu is not None:
-                    est = dataclasses.replace(est, imu=imu_sample)
-                if fresh:
-                    log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
-                                              "stamp": pose.t})
-                times = controller.preview_times(now)
-                if held is None:
-                    try:
-                        samples = traj.sample(times)
-                    except Exception as exc:  # noqa: BLE001
-                        fault("the trajectory", exc, ERROR_LAND)
-                        where = est.p if est is not None else rec.p_ref[max(rec.ticks - 1, 0)]
-                        held = hold_reference(times - now, where)
-                if held is not None:
-                    samples = RefSamples(held.t + now, held.p, held.v, held.a, held.yaw)
-                try:
-                    action, ref, source = sup.plan(now, est, samples)
-                except Exception as exc:  # noqa: BLE001
-                    fault("the supervisor", exc, ERROR_STOP)
-                    break
-
-                solve_s, ok, status = 0.0, False, ""
-                command = None
-                sp = MOTORS_OFF
-                if action is FLY and est is not None:
-                    command = None
-                    if not controller_failed:
-                        try:
-                            plan_est, plan_ref, delay = est, ref, parts.estimator.command_path.delay
-                            if delay > 0.0:
-                                # Plan from where the vehicle will be when this command acts (flight/latency.py);
-                                # a reference the supervisor replaced (landing, fence) is flown as it is.
-                                plan_est = parts.estimator.command_path.ahead(est)
-                                if ref is samples and held is None:
-                                    plan_ref = traj.sample(controller.preview_times(now + delay))
-                            command = controller.step(now, plan_est, plan_ref, pose_fresh=fresh,
-                                                      phase=sup.state.value)
-                            if controller.adaptation is not None:
-                                log.write("/adaptation", now, controller.adaptation.log())
-                        except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
-                            controller_failed = True
-                            fault("the controller", exc, ERROR_LAND)
-                    if command is None:
-                        try:
-                            command = fallback_command(controller, est, ref, "error")
-                        except Exception as exc:  # noqa: BLE001
-                            fault("the geometric fallback", exc, ERROR_STOP)
-                    if command is not None:
-                        ok, solve_s, source, status = command.ok, command.solve_s, command.source, command.status
-                        if source == "fallback":
-                            rec.fallbacks += 1
-                            rec.fallback_reasons[status] = rec.fallback_reasons.get(status, 0) + 1
-                        acc_prev, sp = command.acc, command.setpoint
-                    else:
-                        source = "stop"
-                elif action is BLIND:
-                    sp, acc_prev = sup.blind_setpoint, sup.blind_acc
-                    if not controller_failed:
-                        controller.reset()  # the last solution is stale once flying blind
-                else:
-                    if not controller_failed:
-                        controller.idle()
-                    if source == "no_state":
-                        rec.no_state_ticks += 1
-                try:
-                    sp = sup.send(now, sp)
-                    parts.estimator.command_path.note(now, acc_prev)
-                except Exception as exc:  # noqa: BLE001
-                    fault("the supervisor", exc, ERROR_STOP)
-                    break
-                compute = time.perf_counter() - start
-
-                missed = compute > period or (not parts.clock.lockstep and parts.clock.now() > t_tick + period)
-                try:
-                    sup.after_tick(now, source == "fallback", status, missed)
-                except Exception as exc:  # noqa: BLE001
-                    fault("the supervisor", exc, ERROR_STOP)
-                    break
-                truth = None
-                if parts.truth is not None:
-                    try:
-                        truth = parts.truth()
-                    except Exception as exc:  # noqa: BLE001
-                        fault("the simulator's true state", exc, ERROR_RECORD)
-                p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
-                rec.ensure_room()
-                i = rec.ticks
-                rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, ref.p[0]
-                rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = compute, solve_s, missed, ok
-                rec.ticks += 1
-                try:
-                    _log_tick(log, now, est, truth, ref, sp, acc_prev, source, compute, solve_s, missed, ok,
-                              status if source == "fallback" else "", fresh, sup.state.value, logs_imu)
-                except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
-                    fault("the flight log (tick messages)", exc, ERROR_RECORD)
-                model = controller.model
-                version = model.version if model is not None else 0  # the model this tick flew, before any swap
-                if action is FLY and not controller_failed:
-                    try:
-                        controller.publish(compute_s=compute, missed=missed, supervisor_state=sup.state.value)
-                    except Exception as exc:  # noqa: BLE001
-                        fault("the controller's observers", exc, ERROR_RECORD)
-                if observers:
-                    saturated = action is FLY and command is not None and command.saturated
-                    info = TickInfo(now, est, ref.p[0], ref.v[0], acc_prev, sp, source, compute, solve_s, missed,
-                                    version, sup.state.value, saturated)
-                    for observer in observers:
-                        observer.on_tick(info)
-
-                k += 1
-                if not parts.clock.lockstep:
-                    # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
-                    k = max(k, int(parts.clock.now() / period) + 1)
     finally:
-        controller.observers[:] = inner_observers
-    rec.wall_time = time.perf_counter() - wall_start
-    rec.events = list(sup.events)
-    if controller.adaptation is not None:
-        rec.adaptation = controller.adaptation.summary()
-    return rec.trimmed()
+        parts.controller.observers[:] = loop.inner_observers
+    return loop.finish()
+
+
+class _Halt(Exception):
+    """A part raised that leaves no safe way to go on: the fault is recorded, the loop ends."""
+
+
+@dataclass
+class _Tick:
+    """What one tick read, planned and did, handed from step to step."""
+
+    now: float
+    t_tick: float
+    start: float = 0.0  # perf_counter when the tick's compute began (after the IMU read)
+    pose: Any = None
+    fresh: bool = False
+    est: StateEstimate | None = None
+    action: Any = None
+    ref: Any = None
+    source: str = ""
+    samples: RefSamples | None = None
+    command: Any = None
+    sp: AttitudeSetpoint = MOTORS_OFF
+    solve_s: float = 0.0
+    ok: bool = False
+    status: str = ""
+    compute: float = 0.0
+    missed: bool = False
+
+
+class _Loop:
+    """The loop's state across ticks; each tick is read -> plan -> act -> record.
+
+    A step that meets a fault it cannot degrade past raises ``_Halt`` (after recording it),
+    which ends the loop as the ``break`` of a single loop body would.
+    """
+
+    def __init__(self, parts: FlightParts) -> None:
+        self.parts = parts
+        self.controller, self.traj, self.sup = parts.controller, parts.trajectory, parts.supervisor
+        self.period = 1.0 / self.controller.settings.rate_hz
+        self.rec = FlightRecord.empty(int(np.ceil((self.traj.duration + 0.5) / self.period)) + 1)
+        self.acc_prev = np.zeros(3)
+        self.last_pose_t = -np.inf
+        self.wall_start = time.perf_counter()
+        self.k = 0
+        self.log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
+        self.log.report_to(self.detached)
+        self.observers = [GuardedObserver(o, self.detached) for o in parts.observers]
+        self.inner_observers = list(self.controller.observers)
+        self.controller.observers[:] = [GuardedObserver(o, self.detached) for o in self.inner_observers]
+        self.controller_failed = self.estimator_failed = False
+        self.imu = parts.imu
+        self.logs_imu = self.imu is not None  # a flight with an IMU logs what each tick saw of it, NaN for nothing yet
+        self.held: RefSamples | None = None  # the hold reference once the trajectory has raised
+
+    def fault(self, part: str, exc: BaseException, action: str) -> None:
+        try:
+            self.sup.internal_error(part, exc, action)
+        except Exception:  # noqa: BLE001 - the supervisor could not even record it: nothing more to do here
+            pass
+
+    def detached(self, part: str, exc: BaseException) -> None:
+        self.fault(part, exc, ERROR_RECORD)
+
+    def halt(self, part: str, exc: BaseException) -> None:
+        self.fault(part, exc, ERROR_STOP)
+        raise _Halt(part)
+
+    async def tick(self) -> None:
+        t_tick = self.k * self.period
+        try:
+            await self.parts.clock.sleep_until(t_tick)
+            now = self.parts.clock.now()
+        except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
+            self.halt("the clock (the simulator in lockstep)", exc)
+        tick = _Tick(now, t_tick)
+        self.read(tick)
+        self.plan(tick)
+        self.act(tick)
+        self.record(tick)
+        self.k += 1
+        if not self.parts.clock.lockstep:
+            # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
+            self.k = max(self.k, int(self.parts.clock.now() / self.period) + 1)
+
+    def read(self, tick: _Tick) -> None:
+        """The IMU, the pose and the state estimate; starts the tick's timer."""
+        parts, now = self.parts, tick.now
+        # Read before the tick's timer starts: in lockstep the radio waits here for the simulator's
+        # log packets to cross cflib's thread, which is the simulation's time, not the tick's.
+        imu_sample = None
+        if self.imu is not None:
+            try:
+                imu_sample = self.imu.latest(now)
+            except Exception as exc:  # noqa: BLE001 - fly on without it, as a flight with no IMU
+                self.imu = None
+                self.fault("the IMU source", exc, ERROR_RECORD)
+        tick.start = time.perf_counter()
+        try:
+            pose = parts.mocap.latest(now)
+        except Exception as exc:  # noqa: BLE001
+            self.fault("the mocap source", exc, ERROR_LAND)
+            pose = None
+        try:
+            fresh = pose is not None and pose.t > self.last_pose_t and self.sup.accept_pose(now, pose)
+            if pose is not None:
+                self.last_pose_t = max(self.last_pose_t, pose.t)
+        except Exception as exc:  # noqa: BLE001
+            self.halt("the supervisor", exc)
+        est = None
+        if not self.estimator_failed:
+            try:
+                if fresh:
+                    parts.estimator.update(pose)
+                est = parts.estimator.predict(now, self.acc_prev)
+            except Exception as exc:  # noqa: BLE001 - no state to fly on, not even the fallback's
+                self.estimator_failed = True
+                self.fault("the estimator", exc, ERROR_STOP)
+                est = None
+        if est is not None and self.imu is not None:
+            est = dataclasses.replace(est, imu=imu_sample)
+        if fresh:
+            self.log.write("/mocap", now, {"p": pose.position, "q": pose.quaternion, "received": True,
+                                           "stamp": pose.t})
+        tick.pose, tick.fresh, tick.est = pose, fresh, est
+
+    def plan(self, tick: _Tick) -> None:
+        """The trajectory's preview (or the hold once it has raised) and the supervisor's choice."""
+        now, est = tick.now, tick.est
+        times = self.controller.preview_times(now)
+        if self.held is None:
+            try:
+                tick.samples = self.traj.sample(times)
+            except Exception as exc:  # noqa: BLE001
+                self.fault("the trajectory", exc, ERROR_LAND)
+                where = est.p if est is not None else self.rec.p_ref[max(self.rec.ticks - 1, 0)]
+                self.held = hold_reference(times - now, where)
+        if self.held is not None:
+            held = self.held
+            tick.samples = RefSamples(held.t + now, held.p, held.v, held.a, held.yaw)
+        try:
+            tick.action, tick.ref, tick.source = self.sup.plan(now, est, tick.samples)
+        except Exception as exc:  # noqa: BLE001
+            self.halt("the supervisor", exc)
+
+    def act(self, tick: _Tick) -> None:
+        """The setpoint this tick flies, through the supervisor to the radio; stops the tick's timer."""
+        if tick.action is FLY and tick.est is not None:
+            self.command(tick)
+        elif tick.action is BLIND:
+            tick.sp, self.acc_prev = self.sup.blind_setpoint, self.sup.blind_acc
+            if not self.controller_failed:
+                self.controller.reset()  # the last solution is stale once flying blind
+        else:
+            if not self.controller_failed:
+                self.controller.idle()
+            if tick.source == "no_state":
+                self.rec.no_state_ticks += 1
+        try:
+            tick.sp = self.sup.send(tick.now, tick.sp)
+            self.parts.estimator.command_path.note(tick.now, self.acc_prev)
+        except Exception as exc:  # noqa: BLE001
+            self.halt("the supervisor", exc)
+        tick.compute = time.perf_counter() - tick.start
+
+    def command(self, tick: _Tick) -> None:
+        """The control law's command, or the geometric fallback's once the law has raised."""
+        controller, now, est, ref = self.controller, tick.now, tick.est, tick.ref
+        command = None
+        if not self.controller_failed:
+            try:
+                plan_est, plan_ref, delay = est, ref, self.parts.estimator.command_path.delay
+                if delay > 0.0:
+                    # Plan from where the vehicle will be when this command acts (flight/latency.py);
+                    # a reference the supervisor replaced (landing, fence) is flown as it is.
+                    plan_est = self.parts.estimator.command_path.ahead(est)
+                    if ref is tick.samples and self.held is None:
+                        plan_ref = self.traj.sample(controller.preview_times(now + delay))
+                command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
+                                          phase=self.sup.state.value)
+                if controller.adaptation is not None:
+                    self.log.write("/adaptation", now, controller.adaptation.log())
+            except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
+                self.controller_failed = True
+                self.fault("the controller", exc, ERROR_LAND)
+        if command is None:
+            try:
+                command = fallback_command(controller, est, ref, "error")
+            except Exception as exc:  # noqa: BLE001
+                self.fault("the geometric fallback", exc, ERROR_STOP)
+        tick.command = command
+        if command is None:
+            tick.source = "stop"
+            return
+        tick.ok, tick.solve_s, tick.source, tick.status = command.ok, command.solve_s, command.source, command.status
+        if tick.source == "fallback":
+            self.rec.fallbacks += 1
+            self.rec.fallback_reasons[tick.status] = self.rec.fallback_reasons.get(tick.status, 0) + 1
+        self.acc_prev, tick.sp = command.acc, command.setpoint
+
+    def record(self, tick: _Tick) -> None:
+        """The supervisor's view of the tick, the record, the log and the observers."""
+        parts, sup, now, est = self.parts, self.sup, tick.now, tick.est
+        period = self.period
+        tick.missed = tick.compute > period or (not parts.clock.lockstep and parts.clock.now() > tick.t_tick + period)
+        try:
+            sup.after_tick(now, tick.source == "fallback", tick.status, tick.missed)
+        except Exception as exc:  # noqa: BLE001
+            self.halt("the supervisor", exc)
+        truth = None
+        if parts.truth is not None:
+            try:
+                truth = parts.truth()
+            except Exception as exc:  # noqa: BLE001
+                self.fault("the simulator's true state", exc, ERROR_RECORD)
+        p_now = truth[:3] if truth is not None else (est.p if est is not None else np.full(3, np.nan))
+        rec = self.rec
+        rec.ensure_room()
+        i = rec.ticks
+        rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, tick.ref.p[0]
+        rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = tick.compute, tick.solve_s, tick.missed, tick.ok
+        rec.ticks += 1
+        try:
+            _log_tick(self.log, TickLogged(
+                now, est, truth, tick.ref, tick.sp, self.acc_prev, tick.source, tick.compute, tick.solve_s,
+                tick.missed, tick.ok, tick.status if tick.source == "fallback" else "", tick.fresh,
+                sup.state.value, self.logs_imu))
+        except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
+            self.fault("the flight log (tick messages)", exc, ERROR_RECORD)
+        self.observe(tick)
+
+    def observe(self, tick: _Tick) -> None:
+        """The controller's observers (learning, reports) and the flight's own."""
+        controller, sup = self.controller, self.sup
+        model = controller.model
+        version = model.version if model is not None else 0  # the model this tick flew, before any swap
+        if tick.action is FLY and not self.controller_failed:
+            try:
+                controller.publish(compute_s=tick.compute, missed=tick.missed, supervisor_state=sup.state.value)
+            except Exception as exc:  # noqa: BLE001
+                self.fault("the controller's observers", exc, ERROR_RECORD)
+        if self.observers:
+            saturated = tick.action is FLY and tick.command is not None and tick.command.saturated
+            ref = tick.ref
+            info = TickInfo(tick.now, tick.est, ref.p[0], ref.v[0], self.acc_prev, tick.sp, tick.source,
+                            tick.compute, tick.solve_s, tick.missed, version, sup.state.value, saturated)
+            for observer in self.observers:
+                observer.on_tick(info)
+
+    def finish(self) -> FlightRecord:
+        rec = self.rec
+        rec.wall_time = time.perf_counter() - self.wall_start
+        rec.events = list(self.sup.events)
+        if self.controller.adaptation is not None:
+            rec.adaptation = self.controller.adaptation.summary()
+        return rec.trimmed()
 
 
 _NAN = float("nan")
@@ -316,30 +396,35 @@ _NAN3 = np.full(3, np.nan)
 _NAN3.flags.writeable = False
 
 
-def _log_tick(
-    log: Log,
-    now: float,
-    est: StateEstimate | None,
-    truth: np.ndarray | None,
-    ref: Any,
-    sp: AttitudeSetpoint,
-    acc: np.ndarray,
-    source: str,
-    compute: float,
-    solve_s: float,
-    missed: bool,
-    ok: bool,
-    status: str = "",
-    fresh: bool = True,
-    phase: str = "",
-    logs_imu: bool = False,
-) -> None:
+@dataclass(frozen=True)
+class TickLogged:
+    """What one tick writes to the log's /state, /reference, /command and /tick topics."""
+
+    now: float
+    est: StateEstimate | None
+    truth: np.ndarray | None
+    ref: Any
+    sp: AttitudeSetpoint
+    acc: np.ndarray
+    source: str
+    compute: float
+    solve_s: float
+    missed: bool
+    ok: bool
+    status: str = ""  # why the MPC was not used (fallback ticks only)
+    fresh: bool = True
+    phase: str = ""
+    logs_imu: bool = False
+
+
+def _log_tick(log: Log, t: TickLogged) -> None:
+    now, est, truth, ref, sp = t.now, t.est, t.truth, t.ref, t.sp
     if est is not None:
         # fresh, phase and the newest frame are what the fast layer read this tick: replay feeds them back.
-        state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q, "fresh": bool(fresh), "phase": phase}
+        state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q, "fresh": bool(t.fresh), "phase": t.phase}
         if est.frame is not None:
             state["frame_t"], state["frame_p"] = est.frame
-        if logs_imu:
+        if t.logs_imu:
             imu = est.imu
             state["imu_t"] = imu.t if imu is not None else _NAN
             state["imu_f"] = imu.specific_force if imu is not None else _NAN3
@@ -352,15 +437,15 @@ def _log_tick(
         "/command",
         now,
         {
-            "acc": acc,
+            "acc": t.acc,
             "roll_deg": sp.roll_deg,
             "pitch_deg": sp.pitch_deg,
             "yawrate_deg": sp.yawrate_deg,
             "thrust": sp.thrust,
-            "source": source,
+            "source": t.source,
         },
     )
-    tick: dict[str, Any] = {"compute_s": compute, "solve_s": solve_s, "missed": missed, "mpc_ok": ok}
-    if status:
-        tick["status"] = status  # why the MPC was not used (fallback ticks only)
+    tick: dict[str, Any] = {"compute_s": t.compute, "solve_s": t.solve_s, "missed": t.missed, "mpc_ok": t.ok}
+    if t.status:
+        tick["status"] = t.status  # why the MPC was not used (fallback ticks only)
     log.write("/tick", now, tick)

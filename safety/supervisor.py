@@ -71,6 +71,7 @@ from cfknode.safety.supervisor_types import (  # noqa: F401 (re-exported: the lo
     Radio,
     Log,
     SupervisorInputs,
+    SupervisedFlight,
     Outcome,
     SafetySnapshot,
 )
@@ -83,31 +84,33 @@ class Supervisor(OperatorRequests, SlowInputs):
         self,
         config: SafetyConfig,
         radio: Radio,
+        flight: SupervisedFlight,
         *,
-        trajectory: Trajectory,
-        vehicle: VehicleConfig,
         log: Log,
-        rate_hz: float,
-        deadlines_apply: bool,
         inputs: SupervisorInputs = SupervisorInputs(),
-        robot: str = "",
     ) -> None:
-        """``deadlines_apply``: act on missed deadlines and slow solves (wall clock only).
-        ``robot``: the rigid body's name, for messages."""
+        """``flight``: the trajectory, vehicle and tick rate it watches over (``SupervisedFlight``)."""
         if config.mocap_stop_s <= config.mocap_hold_s:
             raise ConfigError("config key 'safety.mocap_stop_s' must be greater than 'safety.mocap_hold_s'")
         self.config = config
-        self.robot = robot
+        self.robot = flight.robot
         self._radio = radio
         self._log = log
         self._enabled = config.enabled
-        self._period = 1.0 / rate_hz
-        self._deadlines = deadlines_apply
+        self._period = 1.0 / flight.rate_hz
+        self._deadlines = flight.deadlines_apply
         self._battery_source = inputs.battery_voltage
         self._link_source = inputs.link_status
         self.fence = Geofence.from_config(config)
         self._soft_lo, self._soft_hi = self.fence.soft_lo, self.fence.soft_hi
+        self._watch_trajectory(flight.trajectory)
+        self._blind_hold(config, flight.vehicle, radio)
+        self._cos_tilt_max = math.cos(math.radians(config.max_tilt_deg))
+        self._start_state(config, flight.rate_hz)
+        if self._clamp:
+            self._event(0.0, "warning", "the reference leaves the geofence's soft box; it is clamped into it")
 
+    def _watch_trajectory(self, trajectory: Trajectory) -> None:
         segments = trajectory.segments
         self._t_takeoff_end = segments["takeoff"][1]
         self._t_land_start = segments["land"][0]
@@ -118,6 +121,7 @@ class Supervisor(OperatorRequests, SlowInputs):
         grid = np.arange(0.0, trajectory.duration + 0.05, 0.05)
         self._clamp = self._enabled and not self.fence.contains_soft(trajectory.sample(grid).p)
 
+    def _blind_hold(self, config: SafetyConfig, vehicle: VehicleConfig, radio: Radio) -> None:
         hover = vehicle.mass * vehicle.gravity
         self.blind_setpoint = AttitudeSetpoint(0.0, 0.0, 0.0, thrust_command(config.hold_thrust_factor * hover, vehicle))
         blind_az = self.blind_setpoint.thrust * vehicle.newton_per_cmd / vehicle.mass - vehicle.gravity
@@ -127,8 +131,8 @@ class Supervisor(OperatorRequests, SlowInputs):
         guard = getattr(radio, "set_stale_hold", None)
         if guard is not None:
             guard(self.blind_setpoint, self.loop_stalled)
-        self._cos_tilt_max = math.cos(math.radians(config.max_tilt_deg))
 
+    def _start_state(self, config: SafetyConfig, rate_hz: float) -> None:
         self._state = State.IDLE
         self._refused = False
         self._cause = ""
@@ -165,8 +169,6 @@ class Supervisor(OperatorRequests, SlowInputs):
         self._blind = False
         self._blind_since = math.nan
         self.events: list[str] = []
-        if self._clamp:
-            self._event(0.0, "warning", "the reference leaves the geofence's soft box; it is clamped into it")
 
     # --- what other parts read ------------------------------------------------------------------
 

@@ -72,6 +72,17 @@ class SupervisorInputs:
 
 
 @dataclass(frozen=True)
+class SupervisedFlight:
+    """The flight a supervisor watches over."""
+
+    trajectory: Any  # a kernel Reference: its segments, duration and samples
+    vehicle: Any  # a VehicleConfig: the blind hold's thrust
+    rate_hz: float  # the loop's tick rate
+    deadlines_apply: bool  # act on missed deadlines and slow solves (wall clock only)
+    robot: str = ""  # the rigid body's name, for messages
+
+
+@dataclass(frozen=True)
 class Outcome:
     """How the flight ended: the final state, one line for the user, and the cause."""
 

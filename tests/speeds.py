@@ -378,6 +378,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_yaw_gain_scales_the_yaw_rate": FAST,
     },
     "test_sim_vehicle.py": FAST,
+    "test_sizes.py": FAST,
     "test_speeds.py": FAST,
     "test_status.py": FAST,
     "test_step_fit.py": {

@@ -20,6 +20,7 @@ from cfknode.app.ui.dashboard import (
     DashboardStarter,
     FrameMeter,
     KeyReader,
+    Pace,
     render_frame,
     run_dashboard,
     should_show_dashboard,
@@ -135,7 +136,7 @@ def test_dashboard_task_draws_between_lockstep_ticks():
 
     async def main():
         stop = asyncio.Event()
-        task = asyncio.create_task(run_dashboard(status, stop, console, refresh_hz=20.0, meter=meter))
+        task = asyncio.create_task(run_dashboard(status, stop, console, pace=Pace(refresh_hz=20.0), meter=meter))
         ticks_at_frame = await _lockstep_flight(status, meter, frames_wanted=4)
         stop.set()
         return ticks_at_frame, await task
@@ -155,7 +156,7 @@ def test_costly_frames_are_spaced_out_to_stay_within_the_budget():
 
     async def main():
         stop = asyncio.Event()
-        task = asyncio.create_task(run_dashboard(status, stop, console, refresh_hz=10.0, budget=0.05))
+        task = asyncio.create_task(run_dashboard(status, stop, console, pace=Pace(refresh_hz=10.0, budget=0.05)))
         await asyncio.sleep(0.3)
         stop.set()
         return await task

@@ -15,7 +15,7 @@ from cfknode.app.config import ConfigError, load_config
 from cfknode.app.data import inputs
 from cfknode.app.data.check import check, queue_residual, split_by_group, split_dataset
 from cfknode.app.data.prepare import TableOptions, estimate_lag, prepare, shift_input
-from cfknode.app.data.synthetic import flight_table
+from cfknode.app.data.synthetic import Noise, flight_table
 from cfknode.app.data.tables import parse_column_map, read_table
 from cfknode.models.residual_check import explained, layer_estimate, pair_residual
 from cfknode.models.training import train_new_model
@@ -122,7 +122,7 @@ def test_subsampling_keeps_every_nth_sample(table):
 
 def _fit_and_check(climb_gain: float) -> tuple[object, float]:
     cfg = load_config()
-    tab = flight_table(seed=2, manoeuvres=4, seconds=25, climb_gain=climb_gain, noise_rms=0.3, mass=MASS)
+    tab = flight_table(seed=2, manoeuvres=4, seconds=25, climb_gain=climb_gain, noise=Noise(rms=0.3), mass=MASS)
     segments, _ = prepare(tab, "syn", OPTS)
     train, held = split_by_group(segments)
     ds = split_dataset(train, held, cfg.training.velocity_filter_hz)

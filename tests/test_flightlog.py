@@ -15,6 +15,7 @@ import pytest
 
 from cfknode.app.logs.writer import (
     CHANNELS,
+    Chunks,
     FlightLog,
     LogError,
     channels_markdown,
@@ -172,7 +173,7 @@ def _write_flight(log: FlightLog, ticks: int) -> None:
 
 
 def test_truncated_file_reads_up_to_where_it_ends(tmp_path: Path) -> None:
-    with make_log(tmp_path, chunk_size=4096) as log:
+    with make_log(tmp_path, chunks=Chunks(4096)) as log:
         _write_flight(log, 600)
     full = read_log(log.path)
     raw = log.path.read_bytes()
@@ -246,10 +247,10 @@ def test_a_full_disk_never_stops_the_flight(tmp_path: Path) -> None:
     # The file-size limit makes writes fail with EFBIG, as a full disk fails them with ENOSPC.
     script = textwrap.dedent(f"""
         import resource, signal
-        from cfknode.app.logs.writer import FlightLog
+        from cfknode.app.logs.writer import Chunks, FlightLog
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (30_000, resource.RLIM_INFINITY))
-        log = FlightLog.create({str(tmp_path)!r}, {{"a": 1}}, "v", "full", chunk_size=2048, compression="none")
+        log = FlightLog.create({str(tmp_path)!r}, {{"a": 1}}, "v", "full", chunks=Chunks(2048, "none"))
         for k in range(2000):
             log.write("/tick", k / 400, {{"compute_s": 0.0, "solve_s": 0.0, "missed": False, "mpc_ok": True}})
         log.flush()

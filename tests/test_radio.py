@@ -11,7 +11,7 @@ import pytest
 
 from cfknode.app.config import load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
-from cfknode.app.backends.radio import CflibRadio, HardwareRadio, RadioError
+from cfknode.app.backends.radio import CflibRadio, HardwareRadio, LinkSafety, RadioError
 from cfknode.sim_backend.link_driver import register_simulator, unregister_simulator
 from fakes import RecordingFirmware, serve_sim
 
@@ -147,7 +147,7 @@ def test_threaded_mode_sends_from_its_own_thread(sim_uri: tuple[FakeSim, str]) -
 def test_shutdown_order_and_idempotence(sim_uri: tuple[FakeSim, str], lockstep: bool) -> None:
     sim, uri = sim_uri
     radio = CflibRadio(
-        uri, tx_rate_hz=100.0, lockstep=lockstep, zero_stream_s=0.05, clock=lambda: sim.t, advance=sim.step_to
+        uri, tx_rate_hz=100.0, lockstep=lockstep, safety=LinkSafety(zero_stream_s=0.05), clock=lambda: sim.t, advance=sim.step_to
     )
     radio.connect(timeout=2.0)
     radio.set_setpoint(AttitudeSetpoint(5.0, 5.0, 5.0, 30000))
@@ -266,7 +266,7 @@ def real_sim(tmp_path: Any) -> Iterator[tuple[Any, str]]:
 
 
 def hardware_radio(sim: Any, uri: str, tmp_path: Any, **kwargs: Any) -> HardwareRadio:
-    options: dict[str, Any] = dict(params=PARAMS, heartbeat_hz=5.0, lockstep=True, clock=lambda: sim.t,
+    options: dict[str, Any] = dict(params=PARAMS, safety=LinkSafety(heartbeat_hz=5.0), lockstep=True, clock=lambda: sim.t,
                                    advance=sim.step_to, rw_cache=str(tmp_path))
     options.update(kwargs)
     return HardwareRadio(uri, **options)
@@ -389,7 +389,7 @@ def test_no_heartbeat_below_protocol_12(real_sim: tuple[Any, str], tmp_path: Any
 
 def test_threaded_heartbeat_and_extposes_fed_from_the_mocap_thread(sim_uri: tuple[FakeSim, str], tmp_path: Any) -> None:
     sim, uri = sim_uri
-    radio = HardwareRadio(uri, params={}, heartbeat_hz=20.0, lockstep=False, rw_cache=str(tmp_path),
+    radio = HardwareRadio(uri, params={}, safety=LinkSafety(heartbeat_hz=20.0), lockstep=False, rw_cache=str(tmp_path),
                           reboot_after_heartbeat=False)
     radio.connect(timeout=2.0)
     caller = threading.get_ident()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cfknode.flight.recovery import recovery, step_recoveries
-from cfknode.app.ui.summary import compute_summary, summary_from_dict
+from cfknode.app.ui.summary import TickSeries, compute_summary, summary_from_dict
 
 T = np.arange(0.0, 10.0, 0.01)
 
@@ -57,7 +57,7 @@ def test_the_flight_summary_reports_recovery_per_step_and_round_trips() -> None:
     p = p_ref.copy()
     p[:, 2] = np.where(T >= 2.0, 0.1 * np.exp(-2.0 * (T - 2.0)), 0.0)
     n = len(T)
-    s = compute_summary(T, p, p_ref, np.zeros(n), np.zeros(n), np.zeros(n, bool), (1.0, 9.0), 1.0,
+    s = compute_summary(TickSeries(T, p, p_ref, np.zeros(n), np.zeros(n), np.zeros(n, bool)), (1.0, 9.0), 1.0,
                         steps=[(2.0, 0.5), (20.0, 1.33)])
     assert len(s.recovery) == 1  # the step after the pattern is not judged
     r = s.recovery[0]
@@ -65,7 +65,7 @@ def test_the_flight_summary_reports_recovery_per_step_and_round_trips() -> None:
     assert r["peak_error_m"] == pytest.approx(0.1)
     late = p.copy()
     late[T > 8.5, 0] = 0.05  # an excursion in the last second of the pattern: outside a 1 s margin only
-    kept = compute_summary(T, late, p_ref, np.zeros(n), np.zeros(n), np.zeros(n, bool), (1.0, 9.0), 1.0,
+    kept = compute_summary(TickSeries(T, late, p_ref, np.zeros(n), np.zeros(n), np.zeros(n, bool)), (1.0, 9.0), 1.0,
                            steps=[(2.0, 0.5)], recovery_margin_s=1.0)
     assert kept.recovery[0]["time_to_recover_s"] == pytest.approx(r["time_to_recover_s"])
     back = summary_from_dict(s.to_dict())

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfknode.app.logs.writer import FlightLog, read_log
+from cfknode.app.logs.writer import Chunks, FlightLog, read_log
 from cfknode.app.logs.reader import replay_mocap
 from cfknode.mocap.replay import ReplayError, ReplayMocap
 from cfknode.mocap.source import PoseSource
@@ -26,7 +26,7 @@ def frame(k: int) -> tuple[np.ndarray, np.ndarray]:
 
 def write_flight(tmp_path: Path, frames: int = 300, dropped: tuple[int, ...] = (7, 8, 150)) -> Path:
     """A log like the flight loop writes: a frame sampled at k/100 s, received LATENCY later."""
-    with FlightLog.create(tmp_path, {"sim": {"seed": 0}}, "test", "replay", chunk_size=2048) as log:
+    with FlightLog.create(tmp_path, {"sim": {"seed": 0}}, "test", "replay", chunks=Chunks(2048)) as log:
         for k in range(frames):
             stamp = k / 100.0
             if k in dropped:

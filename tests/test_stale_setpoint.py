@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from cfknode.app.backends.radio import HardwareRadio
+from cfknode.app.backends.radio import HardwareRadio, LinkSafety
 from cfknode.app.backends.stale_setpoint import FRESH, HOLD, RESUMED, STOP, ZERO, StaleGuard, StalePolicy, stale_phase
 from cfknode.app.config import ConfigError, load_config
 from cfknode.kernel.setpoint import AttitudeSetpoint
@@ -163,8 +163,8 @@ def test_config_keys_and_their_order() -> None:
 
 def test_a_threaded_radio_holds_then_stops_and_ends_the_heartbeat(sim_uri: tuple[FakeSim, str], tmp_path: Any) -> None:
     sim, uri = sim_uri
-    radio = HardwareRadio(uri, params={}, heartbeat_hz=50.0, lockstep=False, rw_cache=str(tmp_path),
-                          reboot_after_heartbeat=False, stale=StalePolicy(3, 0.3))
+    radio = HardwareRadio(uri, params={}, lockstep=False, rw_cache=str(tmp_path), reboot_after_heartbeat=False,
+                          safety=LinkSafety(heartbeat_hz=50.0, stale=StalePolicy(3, 0.3)))
     heard: list[str] = []
     radio.set_stale_hold(AttitudeSetpoint(0.0, 0.0, 0.0, HOLD_THRUST), lambda phase, age: heard.append(phase))
     radio.connect(timeout=5.0)

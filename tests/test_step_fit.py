@@ -11,6 +11,7 @@ import numpy as np
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, settings_from_controller
 from cfknode.flight.adaptation import StepFit
+from cfknode.flight.adaptation.layer import LoopExtras
 
 G = 9.81
 RATE = 400.0
@@ -138,7 +139,7 @@ def hover(lay: FastAdaptation, seconds: float, theta_at: Callable[[float], float
             thrust = e.thrust_scale * (u + G)
             imu = (t, (a + G + imu_noise * imu_rng.standard_normal()) / thrust)
         lay.update(t, np.array([0.0, 0.0, seen_v]), np.array([0.0, 0.0, seen_z, 0.0, 0.0, seen_v]), cmd, cmd,
-                   (False, False), fresh, imu_theta=imu)
+                   (False, False), fresh, LoopExtras(imu_theta=imu))
         if lay.steps > before:
             alarms.append(t)
         scales.append(lay.estimate.thrust_scale)

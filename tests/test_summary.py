@@ -13,6 +13,7 @@ from rich.console import Console
 from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.app.ui.summary import (
     FlightSummary,
+    TickSeries,
     brief_rows,
     compute_summary,
     drone_row,
@@ -41,7 +42,8 @@ def flight(n: int = 4001, offset=(0.1, -0.2, 0.3), **kwargs) -> FlightSummary:
         window=(2.0, 8.0), wall_time=2.5, log_path="x.mcap",
     )
     args.update(kwargs)
-    return compute_summary(**args)
+    ticks = TickSeries(**{k: args.pop(k) for k in ("t", "p", "p_ref", "compute_s", "solve_s", "missed")})
+    return compute_summary(ticks, **args)
 
 
 def test_constant_offset_gives_known_mse() -> None:
@@ -224,7 +226,7 @@ def test_summary_from_log_matches_the_arrays(tmp_path: Path) -> None:
     est = ref + [0.5, 0.5, 0.5]
     compute = np.linspace(1e-4, 9e-4, n)
     missed = np.arange(n) % 400 == 0
-    expected = compute_summary(t, p_true, ref, compute, compute / 2, missed, (1.0, 3.0), 0.8)
+    expected = compute_summary(TickSeries(t, p_true, ref, compute, compute / 2, missed), (1.0, 3.0), 0.8)
     with FlightLog.create(tmp_path, {"a": 1}, "v", "s") as log:
         for k in range(n):
             log.write("/state", t[k], {"p": est[k], "v": np.zeros(3), "q": [1.0, 0, 0, 0], "p_true": p_true[k]})

@@ -34,7 +34,7 @@ from cfknode.flight.tick_guard import GuardedLog, hand_back
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.app.ui.status import StatusTap
 from cfknode.safety.estop_mailbox import EstopMailbox, FlightRunning, MailboxError, mailbox_dir
-from cfknode.safety.supervisor import ERROR_RECORD, Outcome, Supervisor, SupervisorInputs
+from cfknode.safety.supervisor import ERROR_RECORD, Outcome, SupervisedFlight, Supervisor, SupervisorInputs
 
 
 _logger = logging.getLogger(__name__)
@@ -58,9 +58,9 @@ def build_supervisor(
     inputs: SupervisorInputs = SupervisorInputs(),
 ) -> Supervisor:
     """The safety supervisor for ``cfg``'s flight (the robot's name in messages on hardware)."""
-    return Supervisor(cfg.safety, radio, trajectory=trajectory, vehicle=cfg.vehicle, log=log,
-                      rate_hz=cfg.controller.rate_hz, deadlines_apply=deadlines_apply, inputs=inputs,
-                      robot=cfg.hardware.robot if cfg.backend == "cf" else "")
+    flight = SupervisedFlight(trajectory, cfg.vehicle, cfg.controller.rate_hz, deadlines_apply,
+                              robot=cfg.hardware.robot if cfg.backend == "cf" else "")
+    return Supervisor(cfg.safety, radio, flight, log=log, inputs=inputs)
 
 
 def build_controller(cfg: Config) -> TranslationalMpc | None:
@@ -158,8 +158,8 @@ def run_flight(
     # The e-stop mailbox first: a second flight of a flying robot is refused before anything connects.
     box = estop_mailbox(cfg, flight_cfg) if estop else contextlib.nullcontext(None)
     with box as estop_box, start_trainer(flight_cfg) as trainer, session as sess:
-        return _fly_session(sess, name_hint, model, loaded_model, mpc, observers, on_supervisor, dashboard, trainer,
-                            estop_box, (*forced, *sess.events), trajectory, live)
+        request = _Request(name_hint, observers, on_supervisor, dashboard, trajectory, live)
+        return _fly_session(sess, request, _Kit(model, loaded_model, mpc, trainer, estop_box, (*forced, *sess.events)))
 
 
 def estop_name(cfg: Config) -> str:
@@ -190,32 +190,43 @@ def estop_mailbox(cfg: Config, flight_cfg: Config) -> Iterator[EstopMailbox]:
         box.close()
 
 
-def _fly_session(
-    sess: Backend,
-    name_hint: str,
-    model: ModelSlot | None,
-    loaded_model: bool,
-    mpc: TranslationalMpc | None,
-    observers: Sequence[TickObserver],
-    on_supervisor: Callable[[Supervisor], None] | None,
-    dashboard: Any,
-    trainer: Any,
-    estop: EstopMailbox | None = None,
-    events: Sequence[dict[str, Any]] = (),
-    trajectory: Any = None,
-    live: Any = None,
-) -> FlightResult:
+@dataclass(frozen=True)
+class _Request:
+    """What ``run_flight``'s caller asked for beyond the config (see its docstring)."""
+
+    name_hint: str
+    observers: Sequence[TickObserver]
+    on_supervisor: Callable[[Supervisor], None] | None
+    dashboard: Any
+    trajectory: Any
+    live: Any
+
+
+@dataclass(frozen=True)
+class _Kit:
+    """What ``run_flight`` built before the session's clock started."""
+
+    model: ModelSlot | None
+    loaded_model: bool  # a model file was loaded (not only an online slot)
+    mpc: TranslationalMpc | None
+    trainer: Any
+    estop: EstopMailbox | None
+    events: Sequence[dict[str, Any]]  # logged at t=0: forced config changes, the session's pre-flight events
+
+
+def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
     from cfknode.app.learning import online_session
 
     cfg = sess.config
-    if trajectory is None:
-        trajectory = make_trajectory(cfg.trajectory, sess.start_position)
+    if request.trajectory is None:
+        request = dataclasses.replace(request, trajectory=make_trajectory(cfg.trajectory, sess.start_position))
+    trajectory, dashboard, mpc = request.trajectory, request.dashboard, kit.mpc
     status = _dashboard_status(cfg) if dashboard is not None else None
-    with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, name_hint) as flight_log:
-        view = foxglove_view(flight_log, cfg, trajectory, live)
+    with FlightLog.create(cfg.log.dir, cfg.to_dict(), __version__, request.name_hint) as flight_log:
+        view = foxglove_view(flight_log, cfg, trajectory, request.live)
         # Guarded: a failing write (or dashboard tap) is reported, never the end of the flight.
         log: Any = GuardedLog(view if status is None else StatusTap(view, status))
-        for event in events:
+        for event in kit.events:
             log.write("/events", 0.0, event)
         supervisor = build_supervisor(
             cfg,
@@ -226,33 +237,12 @@ def _fly_session(
             inputs=SupervisorInputs(battery_voltage=sess.battery_voltage, link_status=sess.link_status),
         )
         ground_z = float(sess.start_position[2])
-        with online_session(cfg, model, log, sess.clock, trainer, ground_z=ground_z) as online:
-            # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
-            deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
-            controller = Controller(cfg.controller, cfg.vehicle, model=model, solver=sess.wrap_solver(mpc),
-                                    deadline_s=deadline, ground_z=ground_z, true_mass=sess.true_mass)
-            if online is not None:
-                controller.observers.append(online)
+        with online_session(cfg, kit.model, log, sess.clock, kit.trainer, ground_z=ground_z) as online:
+            parts = _flight_parts(sess, request, kit, supervisor, log, status, online)
+            controller = parts.controller
             view.follow_plan(cfg.hardware.robot, lambda: controller.predicted_positions)
-            parts = FlightParts(
-                clock=sess.clock,
-                mocap=sess.mocap,
-                estimator=VelocityEstimator(cfg.estimator),
-                trajectory=trajectory,
-                controller=controller,
-                supervisor=supervisor,
-                log=log,
-                truth=sess.truth,
-                imu=getattr(sess, "imu", None),
-                observers=[
-                    *observers,
-                    *([status] if status is not None else []),
-                    *sess.fault_observers(model),
-                ],
-                estop=estop,
-            )
-            if on_supervisor is not None:
-                on_supervisor(supervisor)
+            if request.on_supervisor is not None:
+                request.on_supervisor(supervisor)
             flight = fly(parts)
             if status is not None:
                 flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
@@ -261,12 +251,7 @@ def _fly_session(
                               lambda part, exc: supervisor.internal_error(part, exc, ERROR_RECORD))
             outcome = supervisor.outcome()
             summary = compute_summary(
-                t=record.t,
-                p=record.p,
-                p_ref=record.p_ref,
-                compute_s=record.compute_s,
-                solve_s=record.solve_s,
-                missed=record.missed,
+                record,
                 window=trajectory.pattern_window,
                 wall_time=record.wall_time,
                 log_path=str(flight_log.path),
@@ -280,7 +265,7 @@ def _fly_session(
                     "fallback_ticks": record.fallbacks,
                     "fallback_reasons": dict(record.fallback_reasons),
                     "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
-                    "controller": _controller_label(cfg, loaded_model, online is not None),
+                    "controller": _controller_label(cfg, kit.loaded_model, online is not None),
                     "model": cfg.controller.model or None,
                     "solver": cfg.controller.solver if mpc is not None else "none",
                     "backend": cfg.backend,
@@ -301,6 +286,35 @@ def _fly_session(
         summary = dataclasses.replace(summary, extra={**summary.extra, "flight_log": incomplete})
         outcome = dataclasses.replace(outcome, message=f"{outcome.message}; but the flight log is {incomplete}")
     return FlightResult(summary=summary, record=record, outcome=outcome, learner=online, log_incomplete=incomplete)
+
+
+def _flight_parts(sess: Backend, request: _Request, kit: _Kit, supervisor: Supervisor, log: Any, status: Any,
+                  online: Any) -> FlightParts:
+    """The controller (with the online learner watching it) and the loop's parts for one session."""
+    cfg = sess.config
+    # In lockstep no time passes while computing, so a slow solve is not late: no deadline.
+    deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
+    controller = Controller(cfg.controller, cfg.vehicle, model=kit.model, solver=sess.wrap_solver(kit.mpc),
+                            deadline_s=deadline, ground_z=float(sess.start_position[2]), true_mass=sess.true_mass)
+    if online is not None:
+        controller.observers.append(online)
+    return FlightParts(
+        clock=sess.clock,
+        mocap=sess.mocap,
+        estimator=VelocityEstimator(cfg.estimator),
+        trajectory=request.trajectory,
+        controller=controller,
+        supervisor=supervisor,
+        log=log,
+        truth=sess.truth,
+        imu=getattr(sess, "imu", None),
+        observers=[
+            *request.observers,
+            *([status] if status is not None else []),
+            *sess.fault_observers(kit.model),
+        ],
+        estop=kit.estop,
+    )
 
 
 def foxglove_view(flight_log: FlightLog, cfg: Config, trajectory: Any, live: Any) -> FoxgloveView:

@@ -193,9 +193,7 @@ def replay_log(
             elif source != "stop":
                 controller.idle()
             continue
-        frame = (float(state["frame_t"]), np.asarray(state["frame_p"], dtype=float)) if "frame_t" in state else None
-        est = _LoggedState(np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float),
-                           np.asarray(state["q"], dtype=float), t, frame, _logged_imu(state))
+        est = _logged_state(state, t)
         ref = trajectory.sample(controller.preview_times(t))
         if t in refs:
             mismatch = max(mismatch, float(np.max(np.abs(ref.p[0] - np.asarray(refs[t]["p"], dtype=float)))))
@@ -214,18 +212,31 @@ def replay_log(
         replayed_src.append(command.source)
     if not rows_t:
         raise ReplayError(f"{log.path.name}: no tick has both a state and a controller command")
-    notes = []
-    if followed:
-        notes.append(f"{followed} tick(s) fell back in flight (deadline) but solve in replay; flown as in flight")
-    if mismatch > 1e-6:
-        notes.append(f"the reference rebuilt from the config differs from the logged one by up to {mismatch:.3g} m "
-                     "(clamped in flight, or another start pose): commands will differ")
+    notes = _notes(followed, mismatch)
     label = f"{ctrl.kind} {controller.backend}" if controller.solver is not None else ctrl.kind
     return ReplayResult(
         t=np.asarray(rows_t), logged=np.asarray(logged, dtype=float), replayed=np.asarray(replayed, dtype=float),
         logged_source=tuple(logged_src), replayed_source=tuple(replayed_src), skipped=skipped,
         reference_mismatch_m=mismatch, controller=label, model=model_name, notes=tuple(notes),
     )
+
+
+def _logged_state(state: dict[str, Any], t: float) -> _LoggedState:
+    """The estimate a tick flew on, as its /state message logged it."""
+    frame = (float(state["frame_t"]), np.asarray(state["frame_p"], dtype=float)) if "frame_t" in state else None
+    return _LoggedState(np.asarray(state["p"], dtype=float), np.asarray(state["v"], dtype=float),
+                        np.asarray(state["q"], dtype=float), t, frame, _logged_imu(state))
+
+
+def _notes(followed: int, mismatch: float) -> list[str]:
+    """Why replayed commands may differ from the logged ones."""
+    notes = []
+    if followed:
+        notes.append(f"{followed} tick(s) fell back in flight (deadline) but solve in replay; flown as in flight")
+    if mismatch > 1e-6:
+        notes.append(f"the reference rebuilt from the config differs from the logged one by up to {mismatch:.3g} m "
+                     "(clamped in flight, or another start pose): commands will differ")
+    return notes
 
 
 def write_csv(result: ReplayResult, path: str | Path) -> Path:

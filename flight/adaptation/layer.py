@@ -39,7 +39,7 @@ docs/history.md#fast-adaptation-a-slow-observer-a-step-detector-the-motor-lag-ch
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -47,11 +47,24 @@ from cfknode.flight.adaptation.engagement import Engagement
 from cfknode.flight.adaptation.estimate import AdaptationEstimate, applied_estimate
 from cfknode.flight.adaptation.imu_step import ImuStepDetector
 from cfknode.flight.adaptation.observer import (
-    axis_transfer, dob_step, l1_step, rebase_offset, sigma_after_transfer, shrink, smooth_step, thrust_transfer,
+    L1Gains, axis_transfer, dob_step, l1_step, rebase_offset, sigma_after_transfer, shrink, smooth_step, thrust_transfer,
 )
 from cfknode.flight.adaptation.settings import MODES, AdaptationSettings
 from cfknode.flight.adaptation.step_detect import FrameStepDetector, StepTracker
 from cfknode.flight.adaptation.step_fit import LAG_FRAMES, StepFit
+
+
+@dataclass(frozen=True)
+class LoopExtras:
+    """What the adaptation loop adds to a tick beyond the measurements (see ``FastAdaptation.update``)."""
+
+    u_commanded: np.ndarray | None = None
+    thrust_by_lag: np.ndarray | None = None
+    lag: int = 0
+    imu_theta: tuple[float, float] | None = None
+
+
+_NO_EXTRAS = LoopExtras()
 
 
 class FastAdaptation:
@@ -125,17 +138,18 @@ class FastAdaptation:
 
     def update(
         self, t: float, v_meas: np.ndarray, x_meas: np.ndarray | None, u_applied: np.ndarray, model_acc: np.ndarray,
-        saturated: tuple[bool, bool] = (False, False), pose_fresh: bool = True, u_commanded: np.ndarray | None = None,
-        thrust_by_lag: np.ndarray | None = None, lag: int = 0, imu_theta: tuple[float, float] | None = None,
+        saturated: tuple[bool, bool] = (False, False), pose_fresh: bool = True, extras: LoopExtras = _NO_EXTRAS,
     ) -> AdaptationEstimate:
         """One tick. ``u_applied`` / ``model_acc`` are the previous tick's command as the vehicle flew it (sent
         thrust along the measured body axis, in the model's input space) and the model's acceleration for it;
-        ``saturated`` is (thrust at the clamp, tilt limited) for that command; ``u_commanded`` is what the
-        Mellinger layer was asked for (after its limits), for the axis gains. ``thrust_by_lag``: the acting
+        ``saturated`` is (thrust at the clamp, tilt limited) for that command. ``extras`` (``LoopExtras``):
+        ``u_commanded`` is what the Mellinger layer was asked for (after its limits), for the axis gains. ``thrust_by_lag``: the acting
         thrust's vertical acceleration over the nominal mass under each candidate motor lag, ``lag`` the one
         ``u_applied`` used (a step's fit then tells the lag too: ``fit_lag``). ``imu_theta``: (time, theta) of an
         accelerometer sample new this tick, its specific force over the acting thrust's per nominal mass
         (imu_step.py). Returns the estimate for this tick."""
+        u_commanded, thrust_by_lag = extras.u_commanded, extras.thrust_by_lag
+        lag, imu_theta = extras.lag, extras.imu_theta
         if not self.s.enabled:
             return self.estimate
         if not math.isfinite(float(v_meas.sum() + u_applied.sum() + model_acc.sum())):  # one check: nan, inf
@@ -193,9 +207,9 @@ class FastAdaptation:
                 self._omega_z = float(omega[2])
             self._obs, new_sigma = dob_step(self._obs, v_meas, model_acc, omega, dt)
         else:
+            gains = L1Gains(self.s.predictor_gain, self.s.adaptation_gain, self.s.max_offset + 5.0)
             self._obs, self._sigma_hat, new_sigma = l1_step(
-                self._obs, self._sigma_hat, self._sigma, v_meas, model_acc,
-                self.s.predictor_gain, self.s.adaptation_gain, self.omega, dt, self.s.max_offset + 5.0)
+                self._obs, self._sigma_hat, self._sigma, v_meas, model_acc, gains, self.omega, dt)
         # Anti-windup, first half: the observer is fed the command as flown (clamped thrust, limited tilt), so
         # the gap between what was asked and what the limits let through is never integrated as a disturbance.
         # Projection: the estimate stays in its box (the observer is told, so it does not wind up beyond it).
@@ -398,4 +412,4 @@ class FastAdaptation:
         return self.estimate
 
 
-__all__ = ["FastAdaptation"]
+__all__ = ["FastAdaptation", "LoopExtras"]

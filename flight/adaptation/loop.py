@@ -20,7 +20,7 @@ import numpy as np
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.flight.adaptation.estimate import AdaptationEstimate
-from cfknode.flight.adaptation.layer import FastAdaptation
+from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.settings import settings_from_controller
 from cfknode.flight.adaptation.thrust_lag import ThrustLagBank
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
@@ -101,8 +101,8 @@ class LoopAdaptation:
         acting = self.lags.acting_all()
         by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
         imu = self._imu_theta(now, est) if airborne else None
-        self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne,
-                          u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
+        extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
+        self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne, extras)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
         self._count(now)

@@ -6,6 +6,7 @@ as the weights of a learned model's features, beside the constant offset it adap
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
@@ -21,11 +22,21 @@ def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarra
     return z + dt * (a_model + sigma), sigma
 
 
+@dataclass(frozen=True)
+class L1Gains:
+    """The L1 law's constants: predictor gain, adaptation gain, and the projection box's half-width."""
+
+    k_pred: float
+    gamma: float
+    bound: float
+
+
 def l1_step(
     v_hat: np.ndarray, sigma_hat: np.ndarray, sigma_f: np.ndarray, v: np.ndarray, a_model: np.ndarray,
-    k_pred: float, gamma: float, omega: np.ndarray | float, dt: float, bound: float,
+    gains: L1Gains, omega: np.ndarray | float, dt: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """L1-style: velocity predictor, gradient adaptive law with projection (a box), low-pass output filter."""
+    k_pred, gamma, bound = gains.k_pred, gains.gamma, gains.bound
     err = v_hat - v
     sigma_hat = np.clip(sigma_hat - dt * gamma * err, -bound, bound)
     v_hat = v_hat + dt * (a_model + sigma_hat - k_pred * err)

@@ -10,7 +10,7 @@ each new pose as an extpose. Two ways to drive it:
 - ``lockstep=False``: a TX thread sends on the wall clock, so cflib's blocking
   ``send_packet`` (up to 2 s on a bad link) never runs on the event-loop thread.
 
-``heartbeat_hz > 0`` also sends the emergency-stop-watchdog heartbeat
+``LinkSafety.heartbeat_hz > 0`` also sends the emergency-stop-watchdog heartbeat
 (docs/hardware.md#emergency-stop) on the same schedule owner, when the firmware has the
 supervisor port (protocol >= 12).
 
@@ -69,6 +69,19 @@ class RadioStats:
     stale_stops: int = 0  # times (at most once) a stale setpoint made the radio stop the motors
 
 
+@dataclass(frozen=True)
+class LinkSafety:
+    """What the radio sends for safety besides the loop's setpoints.
+
+    ``zero_stream_s``: how long the shutdown streams zeros; ``heartbeat_hz`` > 0: the emergency-stop
+    watchdog's heartbeat (0 = never); ``stale``: when a setpoint counts as stale in threaded mode
+    (None: hold after 4 slots, stop after 1 s)."""
+
+    zero_stream_s: float = 0.1
+    heartbeat_hz: float = 0.0
+    stale: StalePolicy | None = None
+
+
 class CflibRadio:
     """Sends attitude setpoints and extposes to one Crazyflie through cflib."""
 
@@ -79,20 +92,19 @@ class CflibRadio:
         tx_rate_hz: float = 100.0,
         lockstep: bool = False,
         rw_cache: str | None = None,
-        zero_stream_s: float = 0.1,
         clock: Callable[[], float] = time.monotonic,
         advance: Callable[[float], None] | None = None,
-        heartbeat_hz: float = 0.0,
         imu_log: bool = False,
-        stale: StalePolicy | None = None,
+        safety: LinkSafety = LinkSafety(),
     ) -> None:
         """``clock`` is the flight clock (stats timestamps; lockstep shutdown timing).
         ``advance(t)`` steps a lockstep simulator to ``t`` so the shutdown zero stream spans
-        simulated time; without it the zeros go out back to back. ``heartbeat_hz`` > 0 sends
+        simulated time; without it the zeros go out back to back. ``safety.heartbeat_hz`` > 0 sends
         the emergency-stop-watchdog heartbeat where the firmware supports it (0 = never).
         ``imu_log`` starts the accelerometer log block at connect (a firmware without it: a
-        warning in ``imu_note``, and ``imu`` stays None). ``stale``: when a setpoint counts as
-        stale in threaded mode (default: hold after 4 slots, stop after 1 s)."""
+        warning in ``imu_note``, and ``imu`` stays None). ``safety``: the shutdown's zero stream,
+        the heartbeat and the stale-setpoint policy (``LinkSafety``)."""
+        zero_stream_s, heartbeat_hz, stale = safety.zero_stream_s, safety.heartbeat_hz, safety.stale
         if not tx_rate_hz > 0:
             raise ValueError(f"tx_rate_hz must be positive, got {tx_rate_hz}")
         if heartbeat_hz < 0:

@@ -27,7 +27,7 @@ from cfknode.app.config import Config, ConfigError
 from cfknode.kernel.clock import WallClock
 from cfknode.kernel.link import LinkStatus
 from cfknode.safety.watchdogs import radio_link_status
-from cfknode.app.backends.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, RadioError
+from cfknode.app.backends.radio import CONTROLLER_PID, ESTIMATOR_KALMAN, HardwareRadio, LinkSafety, RadioError
 from cfknode.app.backends.sim_mocap import SimulatedMotionCaptureClient
 from cfknode.app.backends.stale_setpoint import StalePolicy
 from cfknode.mocap.motioncapture_source import (
@@ -154,12 +154,12 @@ def connect_robot(cfg: Config, robot: Robot, mocap: MotioncaptureSource, *, cons
             tx_rate_hz=cfg.radio.tx_rate_hz,
             lockstep=False,
             rw_cache=_rw_cache(cfg),
-            heartbeat_hz=hw.heartbeat_hz,
             params=firmware_params(cfg, robot),
             telemetry_hz=hw.telemetry_hz,
             reboot_after_heartbeat=hw.reboot_after_heartbeat,
             imu_log=cfg.radio.imu_log,
-            stale=StalePolicy(cfg.radio.stale_hold_slots, cfg.radio.stale_stop_s),
+            safety=LinkSafety(heartbeat_hz=hw.heartbeat_hz,
+                              stale=StalePolicy(cfg.radio.stale_hold_slots, cfg.radio.stale_stop_s)),
         )
         radio.connect(hw.radio_connect_timeout)
         settle_until = time.monotonic() + hw.preflight_settle

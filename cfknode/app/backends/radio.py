@@ -6,6 +6,7 @@ from __future__ import annotations
 from cfknode.app.backends.cflib_radio import (
     SUPERVISOR_PROTOCOL,
     CflibRadio,
+    LinkSafety,
     RadioError,
     RadioStats,
     ensure_cflib_drivers,
@@ -26,6 +27,7 @@ __all__ = [
     "TELEMETRY_VARIABLES",
     "CflibRadio",
     "HardwareRadio",
+    "LinkSafety",
     "LinkStatistics",
     "RadioError",
     "RadioStats",

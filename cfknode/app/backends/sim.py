@@ -13,7 +13,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from cfknode.app.backends.radio import CflibRadio
+from cfknode.app.backends.radio import CflibRadio, LinkSafety
 from cfknode.app.backends.stale_setpoint import StalePolicy
 from cfknode.app.config import Config
 from cfknode.flight.mpc_codegen import default_cache_dir
@@ -60,7 +60,7 @@ class SimulatorBackend:
             advance=sim.step_to if clock.lockstep else None,
             rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
             imu_log=cfg.radio.imu_log,
-            stale=stale_policy(cfg),
+            safety=LinkSafety(stale=stale_policy(cfg)),
         )
         stepper = None
         try:

@@ -2,11 +2,13 @@
 
 For checking ``cfknode model check`` and training against the truth: the vehicle flies smooth
 manoeuvres (sums of sines) commanded as u(t), and flies v' = u + r, where r = climb_gain v_z
-(vertical) + a band-limited noise above ``noise_hz[0]``, which no command contains (as a gust or a
+(vertical) + a band-limited noise above ``Noise.hz[0]``, which no command contains (as a gust or a
 rotor's unsteady flow): the recorded thrust and attitude are those of u.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,8 +36,16 @@ def _fly(t: np.ndarray, u: np.ndarray, noise: np.ndarray, climb_gain: float, sub
     return p, v
 
 
+@dataclass(frozen=True)
+class Noise:
+    """The table's fast noise: ``rms`` m/s^2, band-limited to ``hz`` (low, high)."""
+
+    rms: float = 0.3
+    hz: tuple[float, float] = (1.5, 4.0)
+
+
 def flight_table(seed: int = 0, manoeuvres: int = 4, seconds: float = 30.0, rate_hz: float = 100.0,
-                 climb_gain: float = -0.4, noise_rms: float = 0.3, noise_hz: tuple[float, float] = (1.5, 4.0),
+                 climb_gain: float = -0.4, noise: Noise = Noise(),
                  mass: float = 0.034, gravity: float = 9.81) -> dict[str, np.ndarray]:
     """Columns of the documented schema (``thrust`` input), manoeuvre by manoeuvre, end to end in time."""
     rng = np.random.default_rng(seed)
@@ -50,8 +60,8 @@ def flight_table(seed: int = 0, manoeuvres: int = 4, seconds: float = 30.0, rate
                 w = 2 * np.pi * rng.uniform(0.1, 0.6)
                 c, ph = amp * rng.uniform(0.3, 1.0) / 3, rng.uniform(0, 2 * np.pi)
                 u[:, axis] -= c * w * w * np.sin(w * tau + ph)
-        noise = _bandlimited(rng, t, noise_rms, *noise_hz)
-        p, v = _fly(t, u, noise, climb_gain)
+        fast = _bandlimited(rng, t, noise.rms, *noise.hz)
+        p, v = _fly(t, u, fast, climb_gain)
         f = u + np.array([0.0, 0.0, gravity])
         thrust = mass * np.linalg.norm(f, axis=1)
         z = f / np.linalg.norm(f, axis=1, keepdims=True)

@@ -201,8 +201,7 @@ class DroneActor:
             log.write("/events", 0.0, {"level": "error", "text": text, "source": "fleet",
                                        "kept_logs": kept, "cause": RESTART_CAUSE})
             empty = FlightRecord.empty(0)
-            summary = compute_summary(t=empty.t, p=empty.p, p_ref=empty.p_ref, compute_s=empty.compute_s,
-                                      solve_s=empty.solve_s, missed=empty.missed, window=window, wall_time=0.0,
+            summary = compute_summary(empty, window=window, wall_time=0.0,
                                       log_path=str(log.path),
                                       extra={"drone": self.name, "outcome": text, "safety_state": "EMERGENCY",
                                              "safety_cause": RESTART_CAUSE, "logs_before_restart": kept})

@@ -220,16 +220,44 @@ def run_fleet(cfg: Config, name_hint: str = "fleet",
                          "vehicle_after_shutdown": d.after_handback()["vehicle_after_shutdown"]}
                         for n, d in zip(names, backend.drones)]
 
-            return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator, trainers, dashboard, live)
+            plan = FleetPlan(names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+            return fly_drones(cfg, backend.drones, plan, handback, on_coordinator, trainers, dashboard, live)
     finally:
         for box in boxes:
             box.close()
 
 
-def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], refs: Sequence[HoldableReference],
-               models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], radio_pps: dict[str, float],
-               name_hint: str, forced: Sequence[dict[str, Any]],
+@dataclass(frozen=True)
+class FleetPlan:
+    """What a fleet flight flies, settled before the drones connect: per drone (in ``names`` order)
+    its reference, model slot, MPC (both empty where each drone builds its own: Ray actors) and
+    e-stop mailbox; the radio load, the log's name and the forced config changes to log at t=0."""
+
+    names: Sequence[str]
+    refs: Sequence[HoldableReference]
+    models: Sequence[Any]
+    mpcs: Sequence[Any]
+    boxes: Sequence[EstopMailbox]
+    radio_pps: dict[str, float]
+    name_hint: str
+    forced: Sequence[dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class _Flying:
+    """A fleet flight once its log, supervisors and learners are up: what ``_fly_drones`` flies."""
+
+    plan: FleetPlan
+    drones: Sequence[Backend]
+    flog: Any
+    sups: Sequence[Supervisor]
+    logs: Sequence[Any]
+    learners: Sequence[Any]
+    ground: Sequence[float]
+    coordinator: FleetCoordinator
+
+
+def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
                handback: Callable[[], Sequence[dict[str, Any]]],
                on_coordinator: Callable[[FleetCoordinator], None] | None = None,
                trainers: Sequence[Any] | None = None, dashboard: Any = None, live: Any = None) -> FleetResult:
@@ -244,13 +272,14 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
     ``dashboard``: a live view (cfknode/app/ui/fleet_dashboard.py ``FleetDashboard``) whose
     ``observers(i, drone, reference, controller, supervisor, coordinator)`` watch drone i; None: none.
     ``live``: a Foxglove live server to show the fleet on (docs/foxglove.md)."""
+    names, refs, radio_pps = plan.names, plan.refs, plan.radio_pps
     config_dict = {**cfg.to_dict(), "fleet_drones": {n: d.config.radio.uri for n, d in zip(names, drones)}}
-    with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint, channels=fleet_channels(names)) as log:
+    with FlightLog.create(cfg.log.dir, config_dict, __version__, plan.name_hint, channels=fleet_channels(names)) as log:
         # Every drone's frame, reference, plan and the fence in Foxglove's schemas, in the log and to ``live``.
         fence = (cfg.safety.fence_min, cfg.safety.fence_max)
         flog = FoxgloveView(log, [McapSink(log), *([live] if live is not None else [])],
                             {n: Drawing(reference_points(ref.inner), fence) for n, ref in zip(names, refs)})
-        for event in forced:
+        for event in plan.forced:
             flog.write("/events", 0.0, event)
         logs = [PrefixedLog(flog, n) for n in names]
         for d, log in zip(drones, logs):
@@ -264,10 +293,10 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
             on_coordinator(coordinator)
         ground = [float(d.start_position[2]) for d in drones]
         ports = list(trainers) if trainers is not None else [None] * len(drones)
-        sessions = fleet_sessions([d.config for d in drones], models, logs, [d.clock for d in drones], ports, ground)
+        sessions = fleet_sessions([d.config for d in drones], plan.models, logs, [d.clock for d in drones], ports, ground)
         with sessions as learners:
-            results = _fly_drones(cfg, drones, flog, names, refs, sups, logs, models, mpcs, boxes, learners, ground,
-                                  coordinator, handback, dashboard)
+            flying = _Flying(plan, drones, flog, sups, logs, learners, ground, coordinator)
+            results = _fly_drones(cfg, flying, handback, dashboard)
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
         coordinator.log_signals(t_end)  # the ones no tick logged (during the hand-back)
@@ -278,12 +307,12 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], names: Sequence[str], ref
                        flog.incomplete())
 
 
-def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequence[str],
-                refs: Sequence[HoldableReference], sups: Sequence[Supervisor], logs: Sequence[Any],
-                models: Sequence[Any], mpcs: Sequence[Any], boxes: Sequence[EstopMailbox], learners: Sequence[Any],
-                ground: Sequence[float], coordinator: FleetCoordinator,
-                handback: Callable[[], Sequence[dict[str, Any]]], dashboard: Any = None) -> list[DroneResult]:
+def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[dict[str, Any]]],
+                dashboard: Any = None) -> list[DroneResult]:
     """Fly every drone to its end and write its summary (with its learner's fields when it learned online)."""
+    plan, drones, flog, sups, learners = flying.plan, flying.drones, flying.flog, flying.sups, flying.learners
+    names, refs, ground, coordinator = plan.names, plan.refs, flying.ground, flying.coordinator
+    boxes, models, mpcs, logs = plan.boxes, plan.models, plan.mpcs, flying.logs
     parts = []
     for i, (d, ref, sup, log, model, mpc, box) in enumerate(zip(drones, refs, sups, logs, models, mpcs, boxes)):
         deadline = d.config.safety.solve_deadline_s if sup.deadlines_apply else None
@@ -305,8 +334,7 @@ def _fly_drones(cfg: Config, drones: Sequence[Backend], flog: Any, names: Sequen
         outcome = sup.outcome()
         online = learner.summary_fields() if learner is not None else {}
         summary = compute_summary(
-            t=rec.t, p=rec.p, p_ref=rec.p_ref, compute_s=rec.compute_s, solve_s=rec.solve_s, missed=rec.missed,
-            window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
+            rec, window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
             extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
                    "safety_state": outcome.state.value, "safety_cause": outcome.cause, "fallback_ticks": rec.fallbacks,
                    "controller": _controller_label(cfg, bool(cfg.controller.model), learner is not None),
@@ -350,4 +378,4 @@ def true_min_separation(records: Sequence[FlightRecord]) -> float:
 
 
 __all__ = ["DroneResult", "FleetCoordinator", "FleetResult", "PrefixedLog", "drone_configs", "fleet_channels",
-           "fly_drones", "preflight", "run_fleet", "true_min_separation"]
+           "FleetPlan", "fly_drones", "preflight", "run_fleet", "true_min_separation"]

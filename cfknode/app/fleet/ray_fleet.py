@@ -40,8 +40,8 @@ from cfknode.app.bench.executor import ExecutorSettings, connect_ray
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.fleet.drone_actor import DroneActor, DroneSpec
 from cfknode.app.bench.ray_probe import RayAddressError
-from cfknode.app.fleet.flight import (DroneResult, FleetCoordinator, FleetResult, drone_configs, placed_fence_events,
-                               preflight, true_min_separation)
+from cfknode.app.fleet.flight import (DroneResult, FleetCoordinator, FleetPlan, FleetResult, drone_configs,
+                                      placed_fence_events, preflight, true_min_separation)
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import FlightResult, MissionError, build_model_slot
@@ -188,8 +188,9 @@ def run_fleet_ray(cfg: Config, settings: ExecutorSettings, name_hint: str = "fle
         except MailboxError as exc:
             raise ConfigError(f"config key 'safety.estop_dir': {exc}") from None
         try:
-            return _fly(ray, cfg, names, [c.radio.uri for c in configs], refs, resources, boxes, radio_pps, forced,
-                        name_hint)
+            # No model slots or MPCs here: each actor builds its drone's own.
+            plan = FleetPlan(names, refs, (), (), boxes, radio_pps, name_hint, forced)
+            return _fly(ray, cfg, plan, [c.radio.uri for c in configs], resources)
         finally:
             for box in boxes:
                 box.close()
@@ -206,14 +207,13 @@ def _absolute_paths(cfg: Config) -> Config:
     return dataclasses.replace(cfg, log=log, controller=ctrl)
 
 
-def _fly(ray: Any, cfg: Config, names: Sequence[str], uris: Sequence[str], refs: Sequence[Any], resources: Sequence[str],
-         boxes: Sequence[EstopMailbox], radio_pps: dict[str, float], forced: Sequence[dict[str, Any]],
-         name_hint: str) -> FleetResult:
+def _fly(ray: Any, cfg: Config, plan: FleetPlan, uris: Sequence[str], resources: Sequence[str]) -> FleetResult:
+    names, refs, boxes, radio_pps, name_hint = plan.names, plan.refs, plan.boxes, plan.radio_pps, plan.name_hint
     token = secrets.token_hex(3)
     remote = ray.remote(DroneActor)
     config_dict = {**cfg.to_dict(), "executor": "ray", "fleet_resources": dict(zip(names, resources))}
     with FlightLog.create(cfg.log.dir, config_dict, __version__, name_hint) as flog:
-        for event in forced:
+        for event in plan.forced:
             flog.write("/events", 0.0, event)
         # Named as its logs are (<hint>-<drone>-<token>), so an operator can find it: ray.get_actor(name).
         actors = [remote.options(resources={res: RESOURCE_SHARE}, num_cpus=1, max_restarts=MAX_RESTARTS,
@@ -362,8 +362,7 @@ def _ended(text: str, cause: str, t: float) -> FlightResult:
     from cfknode.app.ui.summary import compute_summary
 
     empty = FlightRecord.empty(0)
-    summary = compute_summary(t=empty.t, p=empty.p, p_ref=empty.p_ref, compute_s=empty.compute_s,
-                              solve_s=empty.solve_s, missed=empty.missed, window=(0.0, 0.0), wall_time=0.0,
+    summary = compute_summary(empty, window=(0.0, 0.0), wall_time=0.0,
                               extra={"outcome": text, "safety_state": "EMERGENCY", "safety_cause": cause})
     return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, cause, t))
 

@@ -22,8 +22,8 @@ import numpy as np
 
 from cfknode.app.backends.robots import Robot, load_robots
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.fleet.flight import (FleetCoordinator, FleetResult, fly_drones, placed_fence_events, preflight,
-                               separation_refusal)
+from cfknode.app.fleet.flight import (FleetCoordinator, FleetPlan, FleetResult, fly_drones, placed_fence_events,
+                                      preflight, separation_refusal)
 from cfknode.flight.formation import HoldableReference, RotatedReference, stack_level
 from cfknode.flight.trajectory import make_trajectory
 from cfknode.safety.estop_mailbox import safe_name
@@ -188,8 +188,8 @@ def run_robot_fleet(cfg: Config, names: Sequence[str], name_hint: str = "robots"
                     out.append({**extra, **({"internal_errors": errors} if errors else {})})
                 return out
 
-            return fly_drones(cfg, backend.drones, names, refs, models, mpcs, boxes, radio_pps, name_hint, forced,
-                              handback, on_coordinator, trainers, dashboard, live)
+            plan = FleetPlan(names, refs, models, mpcs, boxes, radio_pps, name_hint, forced)
+            return fly_drones(cfg, backend.drones, plan, handback, on_coordinator, trainers, dashboard, live)
     except HARDWARE_ERRORS as exc:
         raise MissionError(str(exc)) from exc
     finally:

@@ -25,6 +25,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -47,6 +48,7 @@ from cfknode.app.logs.reader import LogData, read_log
 __all__ = [
     "CHANNELS",
     "ChannelSpec",
+    "Chunks",
     "FlightLog",
     "LogData",
     "LogError",
@@ -58,6 +60,14 @@ __all__ = [
 ]
 
 _logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Chunks:
+    """How the log's MCAP chunks are cut and compressed: "lz4", "zstd" or "none" (see ``FlightLog.create``)."""
+
+    size: int = 128 * 1024  # bytes
+    compression: str = "lz4"
 _MAX_T = 1.8e10  # s: the largest flight time whose nanoseconds fit MCAP's u64 log time
 
 
@@ -197,8 +207,7 @@ class FlightLog:
         *,
         started: datetime | None = None,
         flush_interval: float = 0.5,
-        chunk_size: int = 128 * 1024,
-        compression: str = "lz4",
+        chunks: Chunks = Chunks(),
         channels: tuple[ChannelSpec, ...] = CHANNELS,
     ) -> FlightLog:
         """Open a new log ``<directory>/YYYYmmdd-HHMMSS-<hint>.mcap`` (a ``-k`` suffix if taken).
@@ -206,7 +215,7 @@ class FlightLog:
         ``started`` (default: now, local time) names the file and is stored in the metadata.
         ``flush_interval`` is the most flight time that written data waits before reaching the OS
         (a chunk ends then); a writer that stops writing for that long in wall time is flushed too.
-        ``compression``: "lz4", "zstd" or "none", per chunk. lz4 and 128 KiB chunks keep the
+        ``chunks.compression``: "lz4", "zstd" or "none", per chunk. lz4 and 128 KiB chunks keep the
         occasional chunk-closing write (done inline by ``write``) near 0.5 ms; zstd files are
         about 30% smaller but close chunks 2x slower.
         """
@@ -222,10 +231,10 @@ class FlightLog:
             raise LogError(f"{directory}: cannot create a flight log ({exc.strerror or exc})") from exc
         try:
             kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-            if compression not in kinds:
-                raise ValueError(f"compression must be one of {sorted(kinds)}, got {compression!r}")
+            if chunks.compression not in kinds:
+                raise ValueError(f"compression must be one of {sorted(kinds)}, got {chunks.compression!r}")
             counted = _CountedStream(stream)
-            writer = Writer(counted, chunk_size=chunk_size, compression=kinds[compression])
+            writer = Writer(counted, chunk_size=chunks.size, compression=kinds[chunks.compression])
             writer.start(profile="", library=f"cfknode {software_version}")
             config_json = json.dumps(_finite_or_none(dict(config)), default=_to_json, sort_keys=True)
             writer.add_metadata(METADATA_NAME, {

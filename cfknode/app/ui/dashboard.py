@@ -42,6 +42,7 @@ __all__ = [
     "DashboardStats",
     "FrameMeter",
     "KeyReader",
+    "Pace",
     "KEY_HELP",
     "render_frame",
     "run_dashboard",
@@ -201,25 +202,33 @@ def should_show_dashboard(args: argparse.Namespace, stream: IO[str], enabled: bo
     return bool(isatty and isatty()) and os.environ.get("TERM") != "dumb"
 
 
+@dataclass(frozen=True)
+class Pace:
+    """How often the dashboard draws: ``refresh_hz`` at most, and frames within ``budget`` of wall time."""
+
+    refresh_hz: float = 10.0
+    budget: float = 0.02
+
+
 async def run_dashboard(
     status: Any,
     stop_event: asyncio.Event,
     console: Console,
     on_key: KeyCallback | None = None,
-    refresh_hz: float = 10.0,
-    budget: float = 0.02,
+    pace: Pace = Pace(),
     key_stream: IO[str] | None = None,
     meter: FrameMeter | None = None,
     render: Render = render_frame,
 ) -> DashboardStats:
-    """Draw ``status`` at ``refresh_hz`` until ``stop_event`` is set, then draw a last frame and return.
+    """Draw ``status`` at ``pace.refresh_hz`` until ``stop_event`` is set, then draw a last frame and return.
 
     ``on_key`` receives key names from ``key_stream`` (default stdin) while the dashboard runs.
-    ``budget`` is the largest share of wall time frames may take; costlier frames are spaced out.
+    ``pace.budget`` is the largest share of wall time frames may take; costlier frames are spaced out.
     ``meter`` collects the frame costs (one is made if not given). ``render(status, wall_now,
     key_error)`` lays out a frame: any status with a ``poll()`` works with its own renderer
     (the fleet's view, cfknode/app/ui/fleet_dashboard.py).
     """
+    refresh_hz, budget = pace.refresh_hz, pace.budget
     if refresh_hz <= 0:
         raise ValueError(f"refresh_hz must be > 0, got {refresh_hz}")
     period = 1.0 / refresh_hz
@@ -275,7 +284,7 @@ async def with_dashboard(
     flight goes on without a dashboard; without it the error is raised once the flight ends.
     """
     stop = asyncio.Event()
-    task = asyncio.create_task(run_dashboard(status, stop, console, on_key, refresh_hz))
+    task = asyncio.create_task(run_dashboard(status, stop, console, on_key, Pace(refresh_hz)))
     if on_error is not None:
         task.add_done_callback(lambda done: _report_failure(done, on_error))
     try:
@@ -311,7 +320,7 @@ class DashboardStarter:
     def on_tick(self, tick: Any) -> None:
         if self._task is None:
             self._task = asyncio.get_running_loop().create_task(run_dashboard(
-                self._status, asyncio.Event(), self._console, self._on_key, self._refresh_hz, meter=self.meter))
+                self._status, asyncio.Event(), self._console, self._on_key, Pace(self._refresh_hz), meter=self.meter))
 
     @property
     def stats(self) -> DashboardStats:

@@ -24,7 +24,7 @@ from typing import Any
 from rich.console import Console
 from rich.style import Style
 
-from cfknode.app.ui.dashboard import DashboardStats, FrameMeter, run_dashboard
+from cfknode.app.ui.dashboard import DashboardStats, FrameMeter, Pace, run_dashboard
 from cfknode.app.ui.frame import (
     _BAD,
     _HEADER,
@@ -338,7 +338,7 @@ class FleetDashboard:
     def on_tick(self, tick: Any) -> None:
         if self._task is None:
             self._task = asyncio.get_running_loop().create_task(run_dashboard(
-                self.status, asyncio.Event(), self.console, self._on_key, self.refresh_hz, meter=self.meter,
+                self.status, asyncio.Event(), self.console, self._on_key, Pace(self.refresh_hz), meter=self.meter,
                 render=render_fleet_frame))
             self._task.add_done_callback(self._done)
 

@@ -24,6 +24,7 @@ from cfknode.flight.recovery import RECOVERY_THRESHOLD_M, step_recoveries
 
 __all__ = [
     "FlightSummary",
+    "TickSeries",
     "TrackingError",
     "compute_summary",
     "brief_rows",
@@ -110,13 +111,20 @@ def tracking_error(p: np.ndarray, p_ref: np.ndarray) -> TrackingError:
     )
 
 
+@dataclass(frozen=True)
+class TickSeries:
+    """A flight's per-tick arrays, as ``compute_summary`` reads them (``FlightRecord`` has the same fields)."""
+
+    t: np.ndarray
+    p: np.ndarray
+    p_ref: np.ndarray
+    compute_s: np.ndarray
+    solve_s: np.ndarray
+    missed: np.ndarray
+
+
 def compute_summary(
-    t: np.ndarray,
-    p: np.ndarray,
-    p_ref: np.ndarray,
-    compute_s: np.ndarray,
-    solve_s: np.ndarray,
-    missed: np.ndarray,
+    ticks: Any,
     window: tuple[float, float],
     wall_time: float,
     log_path: str | None = None,
@@ -128,7 +136,7 @@ def compute_summary(
 ) -> FlightSummary:
     """Summarise a flight from per-tick arrays (pure).
 
-    ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
+    ``ticks``: a ``TickSeries`` or a ``FlightRecord``. ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
     ``compute_s``, ``solve_s`` and ``missed`` are per tick (any common length; a NaN or zero
     solve time means no solve ran that tick). ``window`` selects t0 <= t <= t1 for the
     pattern metrics. ``duration`` defaults to the span of ``t``. ``steps``: (time, mass factor) of
@@ -136,14 +144,14 @@ def compute_summary(
     next step or ``recovery_margin_s`` before the pattern's end (an MPC brakes for the pattern's
     end one preview horizon early, which is not the step's doing).
     """
-    t = np.asarray(t, dtype=float).reshape(-1)
-    p = np.asarray(p, dtype=float).reshape(-1, 3)
-    p_ref = np.asarray(p_ref, dtype=float).reshape(-1, 3)
+    t = np.asarray(ticks.t, dtype=float).reshape(-1)
+    p = np.asarray(ticks.p, dtype=float).reshape(-1, 3)
+    p_ref = np.asarray(ticks.p_ref, dtype=float).reshape(-1, 3)
     if not len(t) == len(p) == len(p_ref):
         raise ValueError(f"t, p and p_ref must have the same length, got {len(t)}, {len(p)}, {len(p_ref)}")
-    compute_s = np.asarray(compute_s, dtype=float).reshape(-1)
-    solve_s = np.asarray(solve_s, dtype=float).reshape(-1)
-    missed = np.asarray(missed, dtype=bool).reshape(-1)
+    compute_s = np.asarray(ticks.compute_s, dtype=float).reshape(-1)
+    solve_s = np.asarray(ticks.solve_s, dtype=float).reshape(-1)
+    missed = np.asarray(ticks.missed, dtype=bool).reshape(-1)
     if len(missed) != len(compute_s):
         raise ValueError(f"missed ({len(missed)}) and compute_s ({len(compute_s)}) must have the same length")
     t0, t1 = float(window[0]), float(window[1])
@@ -221,12 +229,14 @@ def summary_from_log(
         extra["truncated"] = True
     t_ticks = log.times("/tick")
     return compute_summary(
-        t=t,
-        p=p[i_state],
-        p_ref=p_ref[i_ref],
-        compute_s=log.array("/tick", "compute_s") if ticks else np.zeros(0),
-        solve_s=log.array("/tick", "solve_s") if ticks else np.zeros(0),
-        missed=log.array("/tick", "missed") if ticks else np.zeros(0, dtype=bool),
+        TickSeries(
+            t=t,
+            p=p[i_state],
+            p_ref=p_ref[i_ref],
+            compute_s=log.array("/tick", "compute_s") if ticks else np.zeros(0),
+            solve_s=log.array("/tick", "solve_s") if ticks else np.zeros(0),
+            missed=log.array("/tick", "missed") if ticks else np.zeros(0, dtype=bool),
+        ),
         window=window,
         wall_time=wall_time,
         log_path=str(log.path),

@@ -95,14 +95,7 @@ def simulate(
         if mpc is None or bool(mpc.spec.residual_rows) != uses_nn:
             mpc = FullStateMpc(form.mpc_spec(uses_nn))
         mpc.reset()
-    learner: NoLearner | LockstepLearner | LatencyLearner
-    if kind == "knode_online":
-        if form.lockstep:
-            learner = LockstepLearner(protocol, form, offline, seed)
-        else:
-            learner = LatencyLearner(protocol, form, offline, seed, fixed_latency)
-    else:
-        learner = NoLearner(NumpyResidual(offline) if kind == "knode_offline" and offline is not None else None)
+    learner = _learner(protocol, form, kind, offline, seed, fixed_latency)
     geo = GeometricController(veh) if kind == "geometric" else None
 
     ref_pos = circle.sample((np.arange(steps) + 1) * dt)[0]
@@ -146,10 +139,38 @@ def simulate(
             rec_states.append(x_after.copy())
             rec_inputs.append(u.copy())
     recorded = RecordedRun(np.asarray(rec_states), np.asarray(rec_inputs)) if record_from is not None else None
+    solves = _Solves(solve_ms, iterations, failures, fallbacks)
+    return _run_result(protocol, form, kind, pos, ref_pos, solves, learner, wall0), recorded
+
+
+def _learner(protocol: PaperProtocol, form: Formulation, kind: ControllerKind, offline: QueueWeights | None,
+             seed: int, fixed_latency: float | None) -> NoLearner | LockstepLearner | LatencyLearner:
+    """What learns (online kinds) or holds the fixed residual (offline) during one run."""
+    if kind == "knode_online":
+        if form.lockstep:
+            return LockstepLearner(protocol, form, offline, seed)
+        return LatencyLearner(protocol, form, offline, seed, fixed_latency)
+    return NoLearner(NumpyResidual(offline) if kind == "knode_offline" and offline is not None else None)
+
+
+@dataclass(frozen=True)
+class _Solves:
+    """One run's MPC solves: per-solve times (ms) and iterations, failures, nominal fallbacks."""
+
+    solve_ms: list[float]
+    iterations: list[int]
+    failures: int
+    fallbacks: int
+
+
+def _run_result(protocol: PaperProtocol, form: Formulation, kind: ControllerKind, pos: np.ndarray,
+                ref_pos: np.ndarray, solves: _Solves, learner: NoLearner | LockstepLearner | LatencyLearner,
+                wall0: float) -> RunResult:
+    steps, dt = protocol.steps, protocol.plant_dt
     sub = slice(0, steps, TRAJECTORY_EVERY)
     traj = np.column_stack((np.arange(steps)[sub] * dt, pos[sub]))
-    ms = np.asarray(solve_ms) if solve_ms else np.full(1, math.nan)
-    result = RunResult(
+    ms = np.asarray(solves.solve_ms) if solves.solve_ms else np.full(1, math.nan)
+    return RunResult(
         formulation=form.name,
         controller=kind,
         radius=protocol.radius,
@@ -160,15 +181,14 @@ def simulate(
         sim_time=steps * dt,
         solve_ms_median=float(np.median(ms)),
         solve_ms_p99=float(np.percentile(ms, 99)),
-        iterations_mean=float(np.mean(iterations)) if iterations else math.nan,
-        failures=failures,
-        fallbacks=fallbacks,
+        iterations_mean=float(np.mean(solves.iterations)) if solves.iterations else math.nan,
+        failures=solves.failures,
+        fallbacks=solves.fallbacks,
         rounds=tuple(learner.rounds),
         model_drops=tuple(getattr(learner, "drops", ())),
         training_wall=float(sum(r.wall_time for r in learner.rounds)),
         trajectory=traj,
     )
-    return result, recorded
 
 
 def offline_model(
