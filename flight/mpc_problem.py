@@ -152,6 +152,22 @@ def cone_enabled(ctrl: ControllerConfig) -> bool:
     return getattr(ctrl, "adaptation", "none") != "none" and getattr(ctrl, "solver", "rti") == "rti"
 
 
+def _cone_rows(w: Any, uz_max: Any, h_max: Any, n: int) -> tuple[Any, Any, Any]:
+    """The thrust cone as rows of the QP: per stage, the vertical maximum and an octagon inscribed in the
+    horizontal room (both parameters, set every tick from the layer's thrust limit)."""
+    r, lo, hi = [], [], []
+    for k in range(n):
+        u_k = w[_STAGE * k : _STAGE * k + NU]
+        r.append(u_k[2])
+        lo.append(-_BIG)
+        hi.append(uz_max[k])
+        for cx, cy in _OCTAGON:
+            r.append(cx * u_k[0] + cy * u_k[1])
+            lo.append(-_INSCRIBED * h_max[k])
+            hi.append(_INSCRIBED * h_max[k])
+    return ca.vertcat(*r), ca.vertcat(*lo), ca.vertcat(*hi)
+
+
 def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProblem:
     """Symbolic MPC problem; decision vector w = [u_0, x_1, u_1, x_2, ..., u_{N-1}, x_N]."""
     n, h = ctrl.horizon, ctrl.dt
@@ -205,18 +221,7 @@ def build_qp_problem(ctrl: ControllerConfig, vehicle: VehicleConfig) -> QpProble
         # The cone rows replace the horizontal box and the vertical maximum; the box stays as a loose guard.
         lower = np.array([-_BIG, -_BIG, bounds.lower[2]])
         upper = np.array([_BIG, _BIG, _BIG])
-        uz_max, h_max = p[sl["cone_uz"]], p[sl["cone_h"]]
-        r, lo, hi = [], [], []
-        for k in range(n):
-            u_k = w[_STAGE * k : _STAGE * k + NU]
-            r.append(u_k[2])
-            lo.append(-_BIG)
-            hi.append(uz_max[k])
-            for cx, cy in _OCTAGON:
-                r.append(cx * u_k[0] + cy * u_k[1])
-                lo.append(-_INSCRIBED * h_max[k])
-                hi.append(_INSCRIBED * h_max[k])
-        rows, rows_lower, rows_upper = ca.vertcat(*r), ca.vertcat(*lo), ca.vertcat(*hi)
+        rows, rows_lower, rows_upper = _cone_rows(w, p[sl["cone_uz"]], p[sl["cone_h"]], n)
     lbw = np.tile(np.concatenate((lower, np.full(NX, -np.inf))), n)
     ubw = np.tile(np.concatenate((upper, np.full(NX, np.inf))), n)
     return QpProblem(

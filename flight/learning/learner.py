@@ -6,30 +6,23 @@ side only sends numpy windows and receives numpy ``ModelFile``s.
 One ``OnlineLearner`` is a loop observer. Its ``on_tick`` runs after every tick's setpoint is
 decided, i.e. between ticks, and does, in order:
 
-1. record the tick (``WindowRecorder``, ``online_windows.py``): airborne MPC ticks are cut into
-   windows of ``t_col``; a model change discards the partial window, so every window was flown
-   under one model;
+1. record the tick (``WindowRecorder``, ``windows.py``): airborne MPC ticks are cut into windows of
+   ``t_col``; a model change discards the partial window, so every window was flown under one model;
 2. watch the ticks right after a swap: MPC fallbacks there roll the model back;
-3. every ``online.monitor_every_ticks``, judge the flying model (``ModelMonitor``,
-   ``model_monitor.py``): one that explains the newest motion clearly worse than nominal is
-   dropped for nominal until the next accepted candidate;
-4. talk to the trainer (``TrainerClient``, ``trainer_client.py``): at most one request
-   outstanding; a newer finished window replaces an unsent older one (no backlog); crashes and
-   hangs restart the trainer;
-5. a finished candidate goes through the validation gate (``gate_steps``, ``online_gate.py``: finite weights;
-   bounded residual and plausible Jacobians on the recent data *and* the whole operating
-   envelope, where the MPC may linearise it; a lower one-step error than the flying model on
-   fresh data it never saw; beside the fast layer, without constants, over five steps, by a
-   margin and by at least ``online.gate_layer_min_gain`` of acceleration), one slice of up to
-   about a millisecond per tick gap (the five-step rollout grows with the fresh data: 0.9 ms at
-   40 samples), and is then swapped into the ``ModelSlot``: a reference assignment, so no rebuild.
+3. every ``online.monitor_every_ticks``, judge the flying model (``ModelMonitor``, ``monitor.py``): one
+   that explains the newest motion clearly worse than nominal is dropped for nominal;
+4. talk to the trainer (``TrainerClient``, ``trainer_client.py``): at most one request outstanding; a
+   newer finished window replaces an unsent older one; crashes and hangs restart the trainer;
+5. a finished candidate goes through the validation gate (``gate_steps``, ``gate.py``), one slice of up
+   to about a millisecond per tick gap, and is then swapped into the ``ModelSlot``: a reference
+   assignment, so no rebuild.
 
 Honest latency in lockstep simulation: a model is applied no earlier than the moment its
 request was sent (its window's end) plus the observed training round trip. The simulation is
 paced only while the trainer works (a round, or a restart after a fault), and only when sim
 time would otherwise run ahead of the wall time the trainer has had (the loop blocks on the
 result pipe until the wall catches up); the rest of the flight runs at full lockstep speed.
-That is the ``wall`` latency policy. With ``cpu`` or ``fixed`` (``online_latency.py``) the
+That is the ``wall`` latency policy. With ``cpu`` or ``fixed`` (``latency.py``) the
 delay comes from the trainer's report instead and the flight is never paced: a result counts
 as received at exactly send time + delay in flight time, and the loop blocks on the trainer
 only when flight time reaches the earliest moment the result could apply. The flight then
@@ -72,7 +65,7 @@ from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the ap
     _PaceFrom,
     _Watch,
 )
-from cfknode.flight.learning.reports import LearnerReports
+from cfknode.flight.learning.reports import LearnerReports, SwapTimes
 
 
 class OnlineLearner(LearnerReports):
@@ -377,7 +370,8 @@ class OnlineLearner(LearnerReports):
         max_slice = max(g.max_slice_s, last_slice)
         self.swaps.append(SwapEvent(t, out.version, record.swap_s, install_s, max_slice, "swap"))
         self._record(out, held.sent_t, held.latency_s, "swap", "", t, verdict, held.received_t)
-        self._log_model(t, out.version, "swap", "", out, held.latency_s, verdict, record.swap_s, install_s, max_slice)
+        self._log_model(t, out.version, "swap", "", out, held.latency_s, verdict,
+                        SwapTimes(record.swap_s, install_s, max_slice))
 
     def _reject(self, t: float, held: _Held, reason: str, verdict: GateVerdict | None) -> None:
         self.stats.rejected += 1
@@ -414,7 +408,7 @@ class OnlineLearner(LearnerReports):
         self.stats.rollbacks += 1
         self.swaps.append(SwapEvent(t, prev.version, record.swap_s, record.swap_s, record.swap_s, "rollback"))
         reason = f"{w.fallbacks} MPC fallbacks in the {self.s.rollback_ticks - w.ticks_left} ticks after swapping in {w.version}"
-        self._log_model(t, prev.version, "rollback", reason, swap_s=record.swap_s)
+        self._log_model(t, prev.version, "rollback", reason, times=SwapTimes(record.swap_s))
 
     def _discard_pending_candidates(self, t: float, what: str) -> None:
         """A result waiting for the gate, or in it, was trained on the model just replaced: reject it as stale."""
@@ -449,7 +443,7 @@ class OnlineLearner(LearnerReports):
         self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, "drop"))
         reason = (f"model {dropped} predicts the last {verdict.ticks} ticks worse than nominal "
                   f"({verdict.error_model:.2f} vs {verdict.error_nominal:.2f} m/s^2 mean acceleration error)")
-        self._log_model(t, version, "drop", reason, swap_s=record.swap_s)
+        self._log_model(t, version, "drop", reason, times=SwapTimes(record.swap_s))
         self._log_event(t, "warning", f"online: {reason}; flying nominal until the next accepted model")
 
     # --- paper lockstep ----------------------------------------------------------------------

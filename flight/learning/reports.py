@@ -5,6 +5,7 @@ Mixed into ``OnlineLearner``, which owns the state these read."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,15 @@ from cfknode.flight.learning.gate import GateVerdict
 from cfknode.models.trainer_process import TrainOutcome
 from cfknode.flight.learning.records import RoundRecord
 
+
+
+@dataclass(frozen=True)
+class SwapTimes:
+    """What a swap cost on the flight's thread (s; NaN where it does not apply)."""
+
+    swap_s: float = math.nan  # the slot's swap itself
+    install_s: float = math.nan  # the swap with its bookkeeping
+    slice_s: float = math.nan  # the longest gate slice before it
 
 class LearnerReports:
     """``_record``, ``_log_*`` and ``summary_fields`` of ``OnlineLearner``."""
@@ -29,8 +39,8 @@ class LearnerReports:
         ))
 
     def _log_model(self, t: float, version: int, event: str, reason: str = "", out: TrainOutcome | None = None,
-                   latency: float = math.nan, verdict: GateVerdict | None = None, swap_s: float = math.nan,
-                   install_s: float = math.nan, slice_s: float = math.nan) -> None:
+                   latency: float = math.nan, verdict: GateVerdict | None = None,
+                   times: SwapTimes = SwapTimes()) -> None:
         msg: dict[str, Any] = {"version": version, "event": event, "queue": list(self._flying.queue)}
         if reason:
             msg["reason"] = reason
@@ -43,12 +53,9 @@ class LearnerReports:
                        val_pairs=verdict.pairs, control_gain=list(verdict.control_gain),
                        velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain,
                        tilt_climb=verdict.tilt_climb)
-        if math.isfinite(swap_s):
-            msg["swap_ms"] = 1e3 * swap_s
-        if math.isfinite(install_s):
-            msg["install_ms"] = 1e3 * install_s
-        if math.isfinite(slice_s):
-            msg["slice_ms"] = 1e3 * slice_s
+        for key, seconds in (("swap_ms", times.swap_s), ("install_ms", times.install_s), ("slice_ms", times.slice_s)):
+            if math.isfinite(seconds):
+                msg[key] = 1e3 * seconds
         self.log.write("/model", t, msg)
 
     def _log_training(self, t: float, out: TrainOutcome, latency: float) -> None:
