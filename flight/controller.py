@@ -13,6 +13,7 @@ publishes the previous tick first.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ from cfknode.flight.adaptation import GROUND_MARGIN, AdaptationEstimate, Adaptat
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import command_saturated, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
+from cfknode.flight.mpc_problem import MpcParameters
 from cfknode.flight.settings import ControllerConfig
 from cfknode.flight.solver_stats import SolverStats
 from cfknode.kernel.reference import RefSamples
@@ -47,7 +49,9 @@ class Solver(Protocol):
 
     backend: str
 
-    def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any: ...
+    def solve(self, x0: np.ndarray, params: MpcParameters) -> Any:
+        """The plan for state ``x0`` (p, v) given everything else the solve reads (``MpcParameters``)."""
+        ...
 
     def stats(self) -> SolverStats:
         """Solves, failures and rescues so far."""
@@ -196,10 +200,9 @@ class Controller:
         adapt = self.adaptation
         if adapt is not None:
             adapt.before_solve(t, state, pose_fresh, phase, self.model)
-            set_limit = getattr(self.solver, "set_thrust_limit", None)
-            if set_limit is not None:
-                set_limit(adapt.f_max())
-        acc, ok, solve_s, source, status, model_residual = self._acceleration(state, ref, force_fallback)
+        thrust_limit = adapt.f_max() if adapt is not None else math.inf
+        acc, ok, solve_s, source, status, model_residual = self._acceleration(
+            state, ref, force_fallback, thrust_limit)
         shaped = shape_force(acc, self.vehicle, self.settings, adapt.shaping() if adapt is not None else None)
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
         if adapt is not None:
@@ -236,7 +239,8 @@ class Controller:
         if self.adaptation is not None:
             self.adaptation.off_air()
 
-    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool) -> tuple[Any, ...]:
+    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool,
+                      thrust_limit: float) -> tuple[Any, ...]:
         """(acc, ok, solve time, source, status, the model's own residual linearisation or None)."""
         if self.solver is None:
             return self._geometric(state, ref), True, 0.0, "geometric", "ok", None
@@ -247,7 +251,7 @@ class Controller:
         residual = model_residual
         if self.adaptation is not None:
             residual = self.adaptation.residual(model_residual, self.settings.horizon)
-        sol = self.solver.solve(x0, ref, residual)
+        sol = self.solver.solve(x0, MpcParameters(ref, residual, thrust_limit))
         self._x_pred, self._u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
         late = force_fallback or (self.deadline_s is not None and sol.solve_time > self.deadline_s)
         if sol.ok and not late:

@@ -58,6 +58,7 @@ from cfknode.flight.mpc_codegen import CompiledFunction, casadi_link_flags, comp
 
 from cfknode.flight.mpc_problem import (  # noqa: F401 (the MPC's public types live there)
     AccelerationBounds,
+    MpcParameters,
     MpcSolution,
     NU,
     NX,
@@ -162,22 +163,26 @@ class TranslationalMpc:
         else:
             raise ValueError(f"unknown solver {ctrl.solver!r}")
 
-    def set_thrust_limit(self, f_max: float) -> None:
-        """Specific collective thrust at the clamp [m/s^2] for the estimated mass (cone only; a parameter)."""
-        if self.cone and math.isfinite(f_max):
-            self.f_max = max(f_max, self.vehicle.gravity * 1.01)  # never below hover: the QP must stay feasible
-
     def reset(self) -> None:
         """Forget the warm start (e.g. after a fallback period or a jump in the reference)."""
         self._w0.fill(0.0)
         self._lx0.fill(0.0)
         self._la0.fill(0.0)
 
-    def solve(self, x0: np.ndarray, ref: RefLike, residual: ResidualLinearisation | None = None) -> MpcSolution:
+    def solve(self, x0: np.ndarray, params: MpcParameters | RefLike,
+              residual: ResidualLinearisation | None = None) -> MpcSolution:
         """Acceleration command for state ``x0`` = (p, v).  Never raises on bad numbers: ``ok`` says.
 
-        Wrong array shapes are wiring bugs and do raise (``ValueError``).
+        ``params``: what the solve reads besides the state (``MpcParameters``); a reference alone (with
+        ``residual``) is the same with the thrust limit unchanged. Wrong array shapes are wiring bugs and
+        do raise (``ValueError``).
         """
+        if not isinstance(params, MpcParameters):
+            params = MpcParameters(params, residual)
+        ref, residual = params.ref, params.residual
+        if self.cone and math.isfinite(params.thrust_limit):
+            # Never below hover: the QP must stay feasible.
+            self.f_max = max(params.thrust_limit, self.vehicle.gravity * 1.01)
         t0 = time.perf_counter()
         self.solves += 1
         n = self.horizon

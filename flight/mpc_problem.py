@@ -93,6 +93,16 @@ def acceleration_bounds(ctrl: ControllerConfig, vehicle: VehicleConfig) -> Accel
 
 
 @dataclass(frozen=True)
+class MpcParameters:
+    """Everything one solve reads besides the state: the one channel into the MPC's parameter vector
+    (``ParameterLayout`` says where each part lives in it)."""
+
+    ref: Any  # the reference on the horizon's nodes (p, v over N+1, a over N): ``RefSamples``
+    residual: ResidualLinearisation | None = None  # the model's (and the layer's) linearised residual; None: zero
+    thrust_limit: float = math.inf  # m/s^2, specific thrust at the clamp for the estimated mass (the cone); inf: unchanged
+
+
+@dataclass(frozen=True)
 class ParameterLayout:
     """Where each block lives in the flat parameter vector (numpy row-major blocks)."""
 

@@ -179,10 +179,10 @@ class FailingSolver:
         self.injected = 0
 
     def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)  # the rest of the MPC (e.g. set_thrust_limit) passes through
+        return getattr(self._inner, name)  # the rest of the MPC (its stats, backend, ...) passes through
 
-    def solve(self, x0: np.ndarray, ref: Any, residual: Any = None) -> Any:
-        sol = self._inner.solve(x0, ref, residual)
+    def solve(self, x0: np.ndarray, params: Any, residual: Any = None) -> Any:
+        sol = self._inner.solve(x0, params, residual)
         if not _in_windows(self._now(), self._windows):
             return sol
         self.injected += 1

@@ -20,6 +20,7 @@ from cfknode.flight.adaptation import (
 )
 from cfknode.app.logs.writer import read_log
 from cfknode.flight.mellinger import CommandShaping, shape_force
+from cfknode.flight.mpc_problem import MpcParameters
 from cfknode.flight.mpc import TranslationalMpc, acceleration_bounds, build_qp_problem
 from cfknode.kernel.reference import RefSamples
 from cfknode.flight.learning.windows import WindowRecorder
@@ -153,11 +154,11 @@ def test_mpc_cone_puts_altitude_first_but_keeps_a_reserve_for_tilt_near_the_clam
     mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
     n = mpc.horizon
     f = 1.05 * G
-    mpc.set_thrust_limit(f)  # thrust-to-weight 1.05 for the estimated mass
     reserve = f * np.sin(np.radians(cfg.controller.cone_reserve_deg))
-    # 0.5 m low and 1 m to the side: there is no thrust for both.
+    # 0.5 m low and 1 m to the side: there is no thrust for both. Thrust-to-weight 1.05 for the estimated mass.
     x0 = np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0])
-    plans = [mpc.solve(x0, _hover_ref(n, lateral=1.0)) for _ in range(4)]  # warm-started: room from the last plan
+    params = MpcParameters(_hover_ref(n, lateral=1.0), thrust_limit=f)
+    plans = [mpc.solve(x0, params) for _ in range(4)]  # warm-started: room from the last plan
     assert all(sol.ok for sol in plans)
     for sol in plans[2:]:  # the first plans start from a cold guess of the vertical
         u = sol.u_pred
@@ -271,5 +272,5 @@ def test_the_ipopt_reference_flies_the_layer_with_the_box() -> None:
     cfg = load_config(overrides={"controller.adaptation": "dob", "controller.solver": "ipopt", "controller.codegen": False})
     mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
     assert not mpc.cone and mpc.backend == "ipopt"
-    mpc.set_thrust_limit(1.05 * G)  # a no-op without the cone
-    assert mpc.solve(np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0]), _hover_ref(mpc.horizon)).ok
+    limited = MpcParameters(_hover_ref(mpc.horizon), thrust_limit=1.05 * G)  # the limit is no-op without the cone
+    assert mpc.solve(np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0]), limited).ok

@@ -116,3 +116,13 @@ def test_library_log_records_are_held_back_unless_verbose(capsys):
         logging.getLogger("cflib.crazyflie").error("driver trace")
     assert "cflib.crazyflie: ERROR: driver trace" in capsys.readouterr().err
     assert not any(isinstance(h, CommandLogHandler) for h in logging.getLogger().handlers)
+
+
+def test_the_command_line_loads_without_torch() -> None:
+    # Every command's parser is built at start: torch (hundreds of MB) loads only where a command trains.
+    import subprocess
+    import sys
+
+    code = "import sys; from cfknode.app.cli import _parser; _parser(); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "False"

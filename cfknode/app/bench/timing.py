@@ -62,8 +62,9 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
     """
     ctrl = cfg.controller
     tc = 1.0 / ctrl.rate_hz
-    controller = Controller(ctrl, cfg.vehicle, model=slot, solver=mpc)
     start_ref = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
+    # The floor where the guess would put it (the first state's height): said, not guessed.
+    controller = Controller(ctrl, cfg.vehicle, model=slot, solver=mpc, ground_z=float(start_ref.p[0][2]))
     # Start on the reference: the bench times tracking, not the recovery from a 0.4 m/s step.
     x = np.concatenate((start_ref.p[0], start_ref.v[0]))
     level = np.array([1.0, 0.0, 0.0, 0.0])
@@ -131,7 +132,7 @@ def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
 
     ctrl, vehicle = dataclasses.replace(cfg.controller, adaptation="dob"), cfg.vehicle
     timed = _TimedLayer(LoopAdaptation(ctrl, vehicle, ground_z=0.0))
-    controller = Controller(ctrl, vehicle, solver=mpc, adaptation=timed)  # type: ignore[arg-type]
+    controller = Controller(ctrl, vehicle, solver=mpc, adaptation=timed, ground_z=0.0)  # type: ignore[arg-type]
     tc = 1.0 / ctrl.rate_hz
     start = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
     p, v, q = start.p[0].copy(), start.v[0].copy(), np.array([1.0, 0.0, 0.0, 0.0])

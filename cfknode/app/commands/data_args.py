@@ -11,12 +11,13 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from typing import TYPE_CHECKING
+
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.data.check import split_by_group, split_dataset
-from cfknode.app.data.prepare import Preparation, TableOptions, prepare
-from cfknode.app.data.rosbag import is_bag, read_bag
-from cfknode.app.data.tables import parse_column_map, read_table
-from cfknode.models.training import Dataset, Segment, make_dataset
+
+if TYPE_CHECKING:  # torch sits under these: the command line imports them only when data is read
+    from cfknode.app.data.prepare import Preparation
+    from cfknode.models.training import Dataset, Segment
 
 
 def add_data_arguments(p: argparse.ArgumentParser, logs_required: bool = False) -> None:
@@ -41,6 +42,9 @@ def read_segments(args: argparse.Namespace, cfg: Config,
                   say: Callable[[str], None] = lambda line: print(f"cfknode: {line}", file=sys.stderr),
                   ) -> tuple[list[Segment], list[Preparation]]:
     """Every segment from ``--log`` and ``--data``, and one preparation report per table."""
+    from cfknode.app.data.prepare import TableOptions, prepare
+    from cfknode.app.data.rosbag import is_bag, read_bag
+    from cfknode.app.data.tables import parse_column_map, read_table
     from cfknode.app.logs.training_data import segments_from_logs
 
     if not args.log and not args.data:
@@ -66,6 +70,9 @@ def read_segments(args: argparse.Namespace, cfg: Config,
 
 def dataset_for(segments: Sequence[Segment], cfg: Config, split: str) -> tuple[Dataset, tuple[str, ...]]:
     """The training set and its held-out part by ``split``, and the held-out groups (empty for tail)."""
+    from cfknode.app.data.check import split_by_group, split_dataset
+    from cfknode.models.training import make_dataset
+
     groups = {s.source for s in segments}
     try:
         if split == "group" or (split == "auto" and len(groups) >= 2):
