@@ -14,8 +14,8 @@ C (``codegen``).  ``solver: ipopt`` solves the same problem with IPOPT: the
 converged reference.  u is the net acceleration (gravity excluded): u = 0 holds a hover.
 
 Each tick warm-starts from the previous solution as it is.  Shifting it by the elapsed
-time was measured and gained nothing (at 400 Hz a tick is 5 % of an interval; at 20 Hz
-the QP time was the same within noise).  Every RTI answer is checked against the QP's
+time was measured and gained nothing (at 400 Hz a tick is a small part of an interval;
+docs/solver-timings.md).  Every RTI answer is checked against the QP's
 optimality conditions inside the same Function (qrqp can report success at a wrong
 point after a stale warm start); a failed check is re-solved once, cold, by the other
 QP solver, and only then reported as ``ok=False``.

@@ -148,9 +148,8 @@ class GateLimits:
     - no cross-coupling: |dr_i/du_j| <= ``max_cross_gain`` for i != j. The Mellinger layer points
       the thrust where the MPC asks, so a mass or thrust-map error scales each axis alike; a
       window whose commands drift together (u_x rising while a thrust-limited climb decays)
-      fits a spurious dr_z/du_x, and the MPC then tilts hard to "climb" (measured: 0.26 made it
-      command 5 m/s^2 sideways and leave the circle by 0.6 m). 0.2 still admits an 11 deg yaw
-      misalignment between mocap and the vehicle.
+      fits a spurious dr_z/du_x, and the MPC then tilts hard to "climb" (docs/history.md). The
+      default still admits a small yaw misalignment between mocap and the vehicle.
     - no climb from tilt at the thrust limit: tilting either way at the top of the input box gains at most
       ``max_tilt_climb`` of climb (``tilt_climb``), a curvature a bound on each Jacobian cannot see.
     """
@@ -164,11 +163,11 @@ class GateLimits:
     envelope_from_data: bool = False  # the envelope's speed is twice the recent data's fastest axis + 0.5 m/s
     # Beside the fast layer: compare one-step errors without their constant part, and ask the candidate
     # to be this fraction better. The layer already supplies the constant; a network that adds only
-    # noise-fitted shape on top of it flew 1.1-1.3x the layer alone on plants with nothing to learn.
+    # noise-fitted shape on top of it flew worse than the layer alone on plants with nothing to learn.
     constant_free: bool = False
     min_improvement: float = 0.0
     # ... and judge them over this many consecutive fresh pairs flown from each start, as the MPC uses a
-    # model over its horizon: single steps passed networks 6-9 % better that made 1 s plans worse.
+    # model over its horizon: single steps passed networks a little better that made 1 s plans worse.
     steps: int = 1
     # ... and the gain must be at least this acceleration (m/s^2) over that rollout's time: on 0.1 s of fresh
     # data a few mm/s^2 is what a network fitted to noise scores, and such networks flew worse as often as better.
