@@ -318,12 +318,7 @@ class FlightLog:
         An OS error while writing (full disk) never reaches the caller, who is flying: it is
         logged once, kept in ``failure``, and later messages are counted in ``messages_dropped``.
         """
-        entry = self._topics.get(topic)
-        if entry is None:
-            raise ValueError(f"unknown flight-log topic {topic!r}; known: {', '.join(self._topics)}")
-        t = float(t)
-        if not 0.0 <= t < _MAX_T:
-            raise ValueError(f"flight-log time must be finite and >= 0, got {t} on {topic}")
+        entry, t = self._entry(topic, t)
         if "t" in msg:
             raise ValueError(f"message on {topic} must not contain 't' (it is the write time)")
         payload = {"t": t}
@@ -348,13 +343,18 @@ class FlightLog:
 
     def write_encoded(self, topic: str, t: float, data: bytes) -> None:
         """Log an encoded message on a channel from ``add_encoded_channel``; failures as ``write``."""
+        entry, t = self._entry(topic, t)
+        self._add(topic, entry, t, data)
+
+    def _entry(self, topic: str, t: float) -> tuple[tuple[int, bool], float]:
+        """The topic's (channel id, flush at once) and the time as a float; a wiring bug raises ValueError."""
         entry = self._topics.get(topic)
         if entry is None:
             raise ValueError(f"unknown flight-log topic {topic!r}; known: {', '.join(self._topics)}")
         t = float(t)
         if not 0.0 <= t < _MAX_T:
             raise ValueError(f"flight-log time must be finite and >= 0, got {t} on {topic}")
-        self._add(topic, entry, t, data)
+        return entry, t
 
     def _add(self, topic: str, entry: tuple[int, bool], t: float, data: bytes) -> None:
         ns = round(t * 1e9)
