@@ -242,7 +242,10 @@ def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
     assert estop_all(tmp_path / "estop", "land", timeout=10.0) == 0  # the driver's entries sim-cf1, sim-cf2
     driver.join(60.0)
     result = out["result"]
-    assert [d.outcome.cause for d in result.drones] == ["estop_land", "estop_land"]
+    # 0: every flight took its request. The first drone to read its request lands for it, and the fleet's
+    # fault policy (land_all) may land the other for that one tick before it reads its own: either way, by e-stop.
+    causes = [d.outcome.cause for d in result.drones]
+    assert "estop_land" in causes and set(causes) <= {"estop_land", "fleet_fault"}
     assert all(d.outcome.state.value == "LANDED" for d in result.drones)
     assert all(d.record.t[-1] < 8.0 for d in result.drones)  # landed well before the mission's end
 
