@@ -46,3 +46,8 @@ def test_online_learning_starts_and_stops_without_a_with_block() -> None:
     session.stop()
     session.stop()  # stopping twice is harmless
     assert learner not in controller.observers and controller.model is not None
+    again = session.start()  # a stopped session starts afresh, not with the stopped learner
+    try:
+        assert again is not learner and again in controller.observers
+    finally:
+        session.stop()

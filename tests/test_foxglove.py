@@ -118,6 +118,8 @@ def logged(tmp_path_factory) -> str:
     return run_flight(cfg, name_hint="fox").summary.log_path
 
 
+@pytest.mark.flight
+@pytest.mark.slow
 def test_the_flight_log_carries_foxglove_schemas_the_3d_panel_reads(logged):
     found: dict[str, list[Any]] = {}
     with open(logged, "rb") as fh:
@@ -139,6 +141,8 @@ def test_the_flight_log_carries_foxglove_schemas_the_3d_panel_reads(logged):
     assert "/state" in data.messages and "/tf" not in data.messages
 
 
+@pytest.mark.flight
+@pytest.mark.slow
 def test_live_server_advertises_standard_schemas_and_streams_at_the_flight_rate(tmp_path):
     from websockets.sync.client import connect
 
@@ -200,6 +204,8 @@ def test_a_bad_port_is_one_line():
         LiveServer(port=first.port)
 
 
+@pytest.mark.flight
+@pytest.mark.slow
 def test_a_fleet_log_shows_every_drone_as_its_own_frame(tmp_path):
     from cfknode.app.fleet.flight import run_fleet
 

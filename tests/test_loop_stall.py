@@ -24,6 +24,9 @@ from cfknode.app.mission import run_flight
 from cfknode.safety.watchdogs import tilt_deg
 from cfknode.sim_backend.link_driver import lookup
 
+# Real-time flights through the sim:// link in their own threads (the same marks as tests/speeds.py).
+pytestmark = [pytest.mark.flight, pytest.mark.process, pytest.mark.slow]
+
 BLOCK_AT = 2.0  # s of flight time: hovering at 1 m
 BLOCK_S = 4.0
 LEVEL_WITHIN = 0.2  # s after the block starts

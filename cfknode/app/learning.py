@@ -228,6 +228,7 @@ class OnlineLearning:
             if self.learner in self._controller.observers:
                 self._controller.observers.remove(self.learner)
             stack, self._trainer = self._trainer, None
+            self.learner = None  # a later start() starts a trainer and learner of its own
             stack.close()
 
     def __enter__(self) -> OnlineLearner:
