@@ -10,6 +10,7 @@ smootherstep's peak rate is 15/8 of its mean.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,6 +37,12 @@ class Landing:
     def t_end(self) -> float:
         return self.t0 + self.duration
 
+    def advance(self, now: float) -> None:
+        """Once per tick: a straight descent is planned once and for all (ordered_landing.py's is not)."""
+
+    def describe(self) -> str:
+        return f"in {self.duration:.1f} s"
+
     def sample(self, t: np.ndarray) -> RefSamples:
         """Reference at times ``t`` (n,); before ``t0`` it holds the start, after the end the ground."""
         n = t.shape[0]
@@ -56,3 +63,7 @@ class Landing:
         v[:, 2] = dz * inv * ds
         a[:, 2] = dz * inv * inv * dds
         return RefSamples(t=t, p=p, v=v, a=a, yaw=np.zeros(n))
+
+
+# ``(start, ground_z, t0, land_speed)`` -> a landing path: ``sample(t)``, ``t_end``, ``advance(now)``, ``describe()``.
+LandingPlanner = Callable[[np.ndarray, float, float, float], Any]

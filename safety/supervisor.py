@@ -41,7 +41,7 @@ from cfknode.kernel.reference import Reference as Trajectory
 from cfknode.kernel.reference import RefSamples
 from cfknode.mocap.source import Pose
 from cfknode.safety.geofence import Geofence, axis_name, clamp_reference
-from cfknode.safety.landing import Landing
+from cfknode.safety.landing import Landing, LandingPlanner
 from cfknode.safety.part_errors import PartError
 from cfknode.safety.watchdogs import LowPass, Persistence, tilt_cos, tilt_deg
 
@@ -106,6 +106,7 @@ class Supervisor(OperatorRequests, SlowInputs):
         self._watch_trajectory(flight.trajectory)
         self._blind_hold(config, flight.vehicle, radio)
         self._cos_tilt_max = math.cos(math.radians(config.max_tilt_deg))
+        self._landing_planner: LandingPlanner | None = None
         self._start_state(config, flight.rate_hz)
         if self._clamp:
             self._event(0.0, "warning", "the reference leaves the geofence's soft box; it is clamped into it")
@@ -169,6 +170,11 @@ class Supervisor(OperatorRequests, SlowInputs):
         self._blind = False
         self._blind_since = math.nan
         self.events: list[str] = []
+
+    def set_landing_planner(self, planner: LandingPlanner | None) -> None:
+        """How a supervised landing is planned: ``planner(start, ground_z, t0, land_speed)``; a fleet's
+        orders it among the drones (ordered_landing.py). None: straight down from where it is."""
+        self._landing_planner = planner
 
     # --- what other parts read ------------------------------------------------------------------
 
@@ -399,9 +405,11 @@ class Supervisor(OperatorRequests, SlowInputs):
         if landing is None:
             start = self.fence.clamp_point(est.p)
             start[2] = min(float(est.p[2]), float(self._soft_hi[2]))
-            landing = self._landing = Landing.plan(start, self._ground_z, now, self.config.land_speed)
+            landing = self._landing = (self._landing_planner or Landing.plan)(start, self._ground_z, now,
+                                                                              self.config.land_speed)
             self._event(now, "info", f"landing from ({start[0]:.2f}, {start[1]:.2f}, {start[2]:.2f}) m "
-                        f"in {landing.duration:.1f} s")
+                        f"{landing.describe()}")
+        landing.advance(now)
         low = float(est.p[2]) - self._ground_z < self.config.touchdown_height
         if now >= landing.t_end or self._touchdown.update(now, low):
             self._cut(now)

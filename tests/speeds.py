@@ -430,6 +430,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": FAST,
         "test_forced_it_flies_clamped_with_an_event_and_the_clamped_stack_is_checked_for_separation": FLIES,
         "test_a_fault_below_never_lands_the_upper_drone_onto_the_lower": FLIES,
+        "test_a_stop_mid_flight_lands_a_stack_of_three_without_one_drone_passing_another": FLIES,
     },
     "test_flight_data.py": {
         "*": FAST,

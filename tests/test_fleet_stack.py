@@ -174,3 +174,111 @@ def test_a_pair_that_parted_and_comes_close_again_is_reported_again():
     assert watch.update(1, (0, 0, 1.2), both) == []
     watch.update(1, (0.3 + REARM_M + 0.01, 0, 1.0), both)  # parted (a glide clear)
     assert watch.update(1, (0.1, 0, 1.0), both) == [(0, 1, pytest.approx(0.1))]  # e.g. while landing
+
+
+# --- stop paths: every landing bottom-up ----------------------------------------------------------
+
+
+class _StopAt:
+    """Stands in for the fleet's dashboard (``run_fleet(dashboard=...)``): its one tick observer, on
+    cf1, sends the stop once the flight time reaches ``t``, as an operator would, mid-pattern."""
+
+    def __init__(self, t: float, send) -> None:
+        self.t, self.send, self.sent = t, send, False
+
+    def observers(self, i, drone, reference, controller, supervisor, coordinator):
+        stop = self
+
+        class _Tap:
+            def on_tick(self, info):
+                if i == 0 and not stop.sent and info.t >= stop.t:
+                    stop.sent = True
+                    stop.send()
+
+        return [_Tap()]
+
+
+def _airborne_min_separation(result, ground_z: float = 0.0) -> float:
+    """The closest true distance between two drones at ticks where either is airborne (more than 5 cm
+    up); a drone whose loop has ended stays where it was last recorded (landed: motors off)."""
+    recs = [d.record for d in result.drones]
+    n = max(r.ticks for r in recs)
+    held = [np.concatenate([r.p[:r.ticks], np.repeat(r.p[r.ticks - 1:r.ticks], n - r.ticks, axis=0)]) for r in recs]
+    best = np.inf
+    for a in range(len(held)):
+        for b in range(a + 1, len(held)):
+            air = (held[a][:, 2] > ground_z + 0.05) | (held[b][:, 2] > ground_z + 0.05)
+            if air.any():
+                best = min(best, float(np.linalg.norm(held[a] - held[b], axis=1)[air].min()))
+    return best
+
+
+@pytest.mark.parametrize("stop", ["sigint", "estop_all_land"])
+def test_a_stop_mid_flight_lands_a_stack_of_three_without_one_drone_passing_another(tmp_path, stop):
+    """A stack of three (0.7, 1.2, 1.7 m, one column) under downwash, stopped mid-pattern by Ctrl-C
+    or by ``cfknode estop --all --land``: each lands clear of those below (it glides aside first)."""
+    import os
+    import signal
+    import threading
+
+    from cfknode.app.commands.estop_all import estop_all
+
+    cfg = stack_cfg(tmp_path, **{"trajectory.height": 0.7, "trajectory.duration": 3.0, "sim.downwash.enabled": True})
+    if stop == "sigint":
+        send = lambda: os.kill(os.getpid(), signal.SIGINT)  # noqa: E731
+        cause = "sigint"
+    else:
+        codes = []
+        send = lambda: threading.Thread(target=lambda: codes.append(  # noqa: E731
+            estop_all(tmp_path / "estop", "land", timeout=10.0)), daemon=True).start()
+        cause = "estop_land"
+    stopper = _StopAt(3.0, send)
+    result = run_fleet(cfg, dashboard=stopper)
+    assert stopper.sent
+    for d in result.drones:
+        assert d.outcome.state.value == "LANDED", d.outcome.message
+        assert d.outcome.cause in (cause, "fleet_fault"), d.outcome.message
+        assert d.summary.extra["vehicle_after_shutdown"]["on_ground"]
+    # Before they landed bottom-up, the upper two came down onto cf1's column: 5 cm apart at touchdown.
+    assert _airborne_min_separation(result) >= cfg.fleet.min_separation
+    assert result.min_separation_m >= cfg.fleet.min_separation  # the summary's closest approach says the same
+    ends = [d.record.p[d.record.ticks - 1] for d in result.drones]
+    for a in range(3):
+        for b in range(a + 1, 3):
+            assert np.hypot(*(ends[a][:2] - ends[b][:2])) >= cfg.fleet.min_separation
+
+
+class _Gate:
+    """A landing gate with a drone below until ``free_at``, and a spot that moves once."""
+
+    def __init__(self, spots, free_at):
+        self.spots, self.free_at, self.now = list(spots), free_at, 0.0
+
+    def spot(self, p):
+        return np.array(self.spots.pop(0) if self.spots else p, dtype=float), 1.0
+
+    def blocked(self, p):
+        return self.now < self.free_at
+
+
+def test_an_ordered_landing_glides_waits_for_the_drone_below_then_descends():
+    from cfknode.safety.ordered_landing import OrderedLanding
+
+    gate = _Gate([[0.95, 0.0, 1.5]], free_at=3.0)
+    landing = OrderedLanding(gate, [0.5, 0.0, 1.5], 0.0, 0.0, 0.5)
+    for t in np.arange(0.0, 3.0, 0.1):
+        gate.now = t
+        landing.advance(t)
+        p = landing.sample(np.array([t])).p[0]
+        assert p[2] == pytest.approx(1.5) and landing.t_end == np.inf  # at its height until cleared
+    assert np.allclose(landing.sample(np.array([2.9])).p[0], [0.95, 0.0, 1.5])  # at its spot, waiting
+    gate.now = 3.0
+    landing.advance(3.0)
+    assert landing.phase == "descend" and landing.t_end == pytest.approx(3.0 + 1.875 * 1.5 / 0.5)
+    end = landing.sample(np.array([landing.t_end])).p[0]
+    assert np.allclose(end, [0.95, 0.0, 0.0])
+    gate.free_at = 10.0  # a flying drone comes under it on the way down: it hovers where it got to
+    gate.now = 4.0
+    landing.advance(4.0)
+    assert landing.phase == "glide" and landing.t_end == np.inf
+    assert 0.0 < landing.sample(np.array([5.0])).p[0][2] < 1.5

@@ -5,13 +5,16 @@
 lands or stops it: ``fleet.on_fault`` says what the others do. A drone the fleet lands first
 glides clear of every drone below it (``safety/landing_spot.py``), and does not descend while
 a flying drone is below it: a stack lands from the bottom up, never one drone onto another.
+Every supervised landing of a drone (a stop signal, ``cfknode estop --land``, a fault of its own)
+is ordered the same way: ``landing_planner(i)`` is the planner its supervisor flies it with
+(safety/ordered_landing.py), this coordinator its gate.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -20,6 +23,7 @@ from cfknode.flight.controller import TickInfo
 from cfknode.flight.formation import HoldableReference
 from cfknode.safety.geofence import Geofence
 from cfknode.safety.landing_spot import below, clear_spot
+from cfknode.safety.ordered_landing import OrderedLanding
 from cfknode.safety.part_errors import signal_stop_text
 from cfknode.safety.separation import SeparationWatch
 from cfknode.safety.supervisor import Supervisor
@@ -61,10 +65,17 @@ class FleetCoordinator:
         self._faulted: set[int] = set()
         self._signals: deque[str] = deque()  # stop signals not yet on /events (a handler must not write the log)
         self._signals_logged = 0
+        self._waiting: set[int] = set()  # drones whose ordered landing waits for one below (logged once)
+        self._now = 0.0
         self.events: list[str] = []
 
     def tap(self, i: int) -> "_Tap":
         return _Tap(self, i)
+
+    def landing_planner(self, k: int) -> Callable[[np.ndarray, float, float, float], OrderedLanding]:
+        """Drone k's supervised landings: glide clear of the drones below, wait for them, then descend."""
+        gate = _Gate(self, k)
+        return lambda start, ground_z, t0, speed: OrderedLanding(gate, start, ground_z, t0, speed)
 
     def interrupt(self, signal_name: str = "SIGINT") -> None:
         """A stop signal for the whole fleet: every drone's supervisor gets it (the first lands,
@@ -86,7 +97,7 @@ class FleetCoordinator:
                 self._event(t, "error", f"{text} again: every drone stops its motors")
 
     def on_tick(self, i: int, info: TickInfo) -> None:
-        t = info.t
+        t = self._now = info.t
         if self._signals:
             self.log_signals(t)
         if info.est is not None:
@@ -146,9 +157,11 @@ class FleetCoordinator:
         self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
 
     def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
-        """Where drone k lands (clear of every drone below it and of their spots) and the glide's duration."""
-        others = [q for j in range(len(self.names)) if j != k for q in (self._p[j], self._spots.get(j))]
-        spot = clear_spot(p, below(p, others), LANDING_CLEARANCE * self.watch.min_separation, *self._soft,
+        """Where drone k lands (clear of every drone below it and of every other drone's spot, whatever
+        its height: a drone above that lands there descends through it) and the glide's duration."""
+        others = [*below(p, [self._p[j] for j in range(len(self.names)) if j != k]),
+                  *(q for j, q in self._spots.items() if j != k)]
+        spot = clear_spot(p, others, LANDING_CLEARANCE * self.watch.min_separation, *self._soft,
                           away_from=self._centre)
         if spot is None:
             return np.asarray(p, dtype=float).copy(), 0.0  # nowhere clear: land in place (and logged as close)
@@ -178,6 +191,30 @@ class FleetCoordinator:
     def _event(self, t: float, level: str, text: str) -> None:
         self.events.append(f"{t:.3f} s {level}: {text}")
         self._log.write("/events", t, {"level": level, "text": text, "source": "fleet"})
+
+
+@dataclass
+class _Gate:
+    """Drone k's ``LandingGate`` (safety/ordered_landing.py): the coordinator's spots and bottom-up order."""
+
+    coordinator: FleetCoordinator
+    k: int
+
+    def spot(self, p: np.ndarray) -> tuple[np.ndarray, float]:
+        co, k = self.coordinator, self.k
+        spot, move_s = co._landing_spot(k, p)
+        co._spots[k] = spot
+        return spot, move_s
+
+    def blocked(self, p: np.ndarray) -> bool:
+        co, k = self.coordinator, self.k
+        if not co._blocked(k):
+            co._waiting.discard(k)
+            return False
+        if k not in co._waiting:
+            co._waiting.add(k)
+            co._event(co._now, "info", f"{co.names[k]} waits to land: a flying drone is below it")
+        return True
 
 
 @dataclass

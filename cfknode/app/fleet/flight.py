@@ -289,6 +289,8 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
                                  inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
                 for d, ref, log in zip(drones, refs, logs)]
         coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
+        for k, sup in enumerate(sups):  # every supervised landing bottom-up, clear of the drones below
+            sup.set_landing_planner(coordinator.landing_planner(k))
         if on_coordinator is not None:
             on_coordinator(coordinator)
         ground = [float(d.start_position[2]) for d in drones]
@@ -365,16 +367,25 @@ async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
 
 def true_min_separation(records: Sequence[FlightRecord]) -> float:
     """The smallest distance between any two drones' recorded positions at the same tick (true
-    positions in simulation), over the ticks where both recorded; inf for fewer than two."""
+    positions in simulation), over the ticks where either still recorded; inf for fewer than two.
+
+    A drone whose loop has ended stays where it was last recorded (landed, or stopped and fallen),
+    so a drone that lands later onto one that landed first is measured too."""
     best = float("inf")
     for i in range(len(records)):
         for j in range(i + 1, len(records)):
-            n = min(records[i].ticks, records[j].ticks)
-            if n == 0:
+            a, b = records[i], records[j]
+            if a.ticks == 0 or b.ticks == 0:
                 continue
-            d = np.linalg.norm(records[i].p[:n] - records[j].p[:n], axis=1)
+            n = max(a.ticks, b.ticks)
+            d = np.linalg.norm(_held(a.p[:a.ticks], n) - _held(b.p[:b.ticks], n), axis=1)
             best = min(best, float(d.min()))
     return best
+
+
+def _held(p: np.ndarray, n: int) -> np.ndarray:
+    """``p`` (ticks, 3) extended to ``n`` ticks with its last row."""
+    return p if len(p) >= n else np.concatenate([p, np.repeat(p[-1:], n - len(p), axis=0)])
 
 
 __all__ = ["DroneResult", "FleetCoordinator", "FleetResult", "PrefixedLog", "drone_configs", "fleet_channels",
