@@ -39,8 +39,12 @@ class OperatorRequests:
         self._requests.append((_LAND, cause, reason, ""))
 
     def request_stop(self, reason: str = "operator stop", cause: str = "operator_stop") -> None:
-        """Stop the motors at the next tick, wherever the drone is."""
+        """Stop the motors at the next tick, wherever the drone is; a radio that guards its setpoint's
+        age hears of it at once, and stops the motors itself if the loop has stalled."""
         self._requests.append((_STOP, cause, reason, ""))
+        notify = getattr(self._radio, "operator_stop", None)
+        if notify is not None:
+            notify()
 
     def note(self, level: str, text: str, source: str = "supervisor") -> None:
         """An event from a part outside the loop (the e-stop mailbox), at the latest tick's time."""

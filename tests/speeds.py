@@ -461,6 +461,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_sim_ideal_plant.py": FAST,
     "test_sim_realistic_flight.py": FLIES,
     "test_stale_setpoint.py": FAST,
+    "test_stall_estop.py": BOTH,
     "test_stall_supervisor.py": FAST,
     "test_trainer_killed.py": BOTH,
     "test_trajectory.py": FAST,

@@ -247,3 +247,22 @@ def test_the_relay_off_the_main_thread_is_not_installed() -> None:
     worker.start()
     worker.join()
     assert out == [False]
+
+
+def test_an_operator_stop_stops_a_stalled_loop_at_once_and_leaves_a_ticking_one_to_its_supervisor() -> None:
+    guard, clock, heard = _guard()
+    guard.stamp(FLY)
+    guard.operator_stop()  # the loop ticks: its supervisor stops the motors at its next tick
+    assert _slots(guard, clock, 1) == [FLY] and guard.phase == FRESH
+    guard, clock, heard = _guard()
+    guard.stamp(FLY)
+    out = _slots(guard, clock, 6)  # stalled: holding from the fifth slot
+    assert out[-1] == (0.0, 0.0, 0.0, HOLD_THRUST) and guard.phase == HOLD
+    guard.operator_stop()  # e.g. ``cfknode estop`` taken by the mailbox's watch thread
+    assert guard.phase == STOP and guard.stops == 1 and heard[-1][0] == STOP
+    assert _slots(guard, clock, 2) == [ZERO, ZERO]
+    guard, clock, heard = _guard()
+    guard.stamp(FLY)
+    _slots(guard, clock, 2)  # stalled, not yet holding: the request waits for the slot the hold would start
+    guard.operator_stop()
+    assert _slots(guard, clock, 3)[-1] == ZERO and guard.stops == 1

@@ -247,6 +247,10 @@ class CflibRadio:
         """The flight's ``count``-th stop signal (any thread): during a stall the second stops the motors."""
         self._stale.stop_signal(count)
 
+    def operator_stop(self) -> None:
+        """An operator's stop (``cfknode estop``), from any thread: motors off now if the loop has stalled."""
+        self._stale.operator_stop()
+
     def set_extpose(self, position: np.ndarray, quaternion_wxyz: np.ndarray) -> None:
         """Queue a pose for the onboard estimator; cflib wants the quaternion as x, y, z, w."""
         x, y, z = position.tolist()

@@ -12,7 +12,9 @@ TX thread asks ``StaleGuard.outgoing`` what to send at every slot. By the setpoi
   is latched: a loop that comes back later does not restart the motors.
 
 A setpoint with zero thrust is never replaced: the motors are already off, and a landed drone
-whose loop has ended (the fleet's others still flying) must keep its heartbeat. The listener
+whose loop has ended (the fleet's others still flying) must keep its heartbeat. An operator's
+stop (``operator_stop``: ``cfknode estop``) stops the motors as soon as the loop is stalled,
+at once or at the hold it would otherwise fly. The listener
 (the supervisor) hears of each hold and stop with the setpoint's age, and of a loop that came
 back during a hold with how long it was gone, from the thread that noticed it.
 """
@@ -82,6 +84,7 @@ class StaleGuard:
         self._phase = FRESH
         self._lock = threading.Lock()
         self._listener: Callable[[str, float], None] | None = None
+        self._operator_stop = False  # an operator asked for the motors off: no hold, a stop
         self.holds = 0  # stalls that reached the hold
         self.stops = 0  # stalls that reached the stop (at most one: it latches)
 
@@ -119,6 +122,8 @@ class StaleGuard:
         sp, stamped = slot
         age = self._clock() - stamped
         phase = STOP if self._phase == STOP else (stale_phase(age, self._slots, self.policy) if sp[3] > 0 else FRESH)
+        if phase == HOLD and self._operator_stop:
+            phase = STOP
         if phase != self._phase:
             was = self._phase
             self._change(phase, age)
@@ -134,6 +139,14 @@ class StaleGuard:
         """The ``count``-th stop signal of the flight: the second one during a stall stops the motors
         now (the stalled loop cannot); otherwise the loop's supervisor acts on it."""
         if count >= STOP_SIGNALS_DURING_STALL and self._phase == HOLD:
+            slot = self._slot
+            self._change(STOP, self._clock() - slot[1] if slot is not None else math.nan)
+
+    def operator_stop(self) -> None:
+        """An operator's stop (any thread): the loop's supervisor acts on it at its next tick; while
+        the loop is stalled (a hold, or from the slot a hold would start), the motors stop now."""
+        self._operator_stop = True
+        if self._phase == HOLD:
             slot = self._slot
             self._change(STOP, self._clock() - slot[1] if slot is not None else math.nan)
 
