@@ -462,6 +462,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_sim_realistic_flight.py": FLIES,
     "test_stale_setpoint.py": FAST,
     "test_stall_estop.py": BOTH,
+    "test_stall_exit.py": {
+        "*": FAST,
+        "test_a_realtime_flight_whose_loop_hangs_forever_exits_with_its_log_readable": BOTH,
+    },
     "test_stall_supervisor.py": FAST,
     "test_trainer_killed.py": BOTH,
     "test_trajectory.py": FAST,

@@ -24,6 +24,7 @@ from cfknode.flight.learning.trainer_client import refuse_in_spawned_import
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
 from cfknode.app.logs.writer import FlightLog
+from cfknode.app.stall_exit import LoopProgress, stall_exit
 from cfknode.flight.loop import FlightParts, FlightRecord, TickObserver, fly
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
@@ -243,10 +244,13 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
             view.follow_plan(cfg.hardware.robot, lambda: controller.predicted_positions)
             if request.on_supervisor is not None:
                 request.on_supervisor(supervisor)
+            progress = LoopProgress()
+            parts.observers.insert(0, progress)
             flight = fly(parts)
             if status is not None:
                 flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
-            record = asyncio.run(flight)
+            with stall_exit([sess.radio], flight_log, progress):  # a loop that never returns ends the process
+                record = asyncio.run(flight)
             after = hand_back(sess.radio.shutdown, sess.after_handback,
                               lambda part, exc: supervisor.internal_error(part, exc, ERROR_RECORD))
             outcome = supervisor.outcome()
