@@ -157,10 +157,12 @@ class FleetCoordinator:
         self._schedule_land(k, min(t_land, self._land_deadline[k]), reason, cause)
 
     def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
-        """Where drone k lands (clear of every drone below it and of every other drone's spot, whatever
-        its height: a drone above that lands there descends through it) and the glide's duration."""
-        others = [*below(p, [self._p[j] for j in range(len(self.names)) if j != k]),
-                  *(q for j, q in self._spots.items() if j != k)]
+        """Where drone k lands (clear of every drone below it and of their spots, and of the spots of
+        the drones above it, which descend through there) and the glide's duration."""
+        z = float(p[2])
+        spots = [q for j, q in self._spots.items() if j != k]
+        others = [*below(p, [*(self._p[j] for j in range(len(self.names)) if j != k), *spots]),
+                  *(q for q in spots if float(q[2]) > z)]
         spot = clear_spot(p, others, LANDING_CLEARANCE * self.watch.min_separation, *self._soft,
                           away_from=self._centre)
         if spot is None:
