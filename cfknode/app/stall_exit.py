@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 __all__ = ["EXIT_STATUS", "GRACE_S", "LoopProgress", "stall_exit"]
 
-GRACE_S = 3.0  # wall seconds a loop gets to come back after its motors were stopped for it
+GRACE_S = 10.0  # wall seconds a loop gets to come back after its motors were stopped for it: far beyond a stall that ends
 CLOSE_S = 2.0  # wall seconds each of the hand-back and the log close may take before we leave anyway
 EXIT_STATUS = 1  # the flight did not end as planned (as any other cut-short flight)
 _POLL_S = 0.1

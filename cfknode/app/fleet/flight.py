@@ -46,6 +46,7 @@ from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import _controller_label, build_controller, build_model_slot, build_supervisor
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
+from cfknode.app.stall_exit import LoopProgress, stall_exit
 from cfknode.app.trajectory_fit import fence_problem
 from cfknode.app.ui.summary import FlightSummary, compute_summary
 from cfknode.flight.controller import Controller
@@ -329,7 +330,11 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
                                  signals=False))
     for i, (d, p) in enumerate(zip(drones, parts) if dashboard is not None else ()):
         p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
-    records = asyncio.run(_gather(drones, parts, coordinator))
+    progress = LoopProgress()  # the loops share one thread: any drone's tick says it is alive
+    for p in parts:
+        p.observers.insert(0, progress)
+    with stall_exit([d.radio for d in drones], flog, progress):  # a loop that never returns ends the process
+        records = asyncio.run(_gather(drones, parts, coordinator))
     after = handback()
     results = []
     for name, d, rec, sup, ref, learner, extra in zip(names, drones, records, sups, refs, learners, after):
