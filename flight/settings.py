@@ -61,6 +61,12 @@ class AdaptationTuning:
         doc="time constant of the mean engage_slow_level is compared with")
     release_s: float = setting(unit="s", low=0, high=60,
         doc="an axis lets go again after this long with both under half their levels")
+    accel_cutoff_hz: float = setting(unit="Hz", low=0, high=40,
+        doc="cut-off of the accelerometer's fast part of the offset (flight/adaptation/accel_path.py); 0 = off")
+    accel_max_offset: float = setting(unit="m/s^2", low=0, high=20, open_low=True,
+        doc="largest acceleration the fast path adds per axis")
+    accel_stale_s: float = setting(unit="s", low=0, high=1, open_low=True,
+        doc="with no usable accelerometer sample this long the fast path is withdrawn (100 Hz log: 10 ms apart)")
 
 
 @dataclass(frozen=True)

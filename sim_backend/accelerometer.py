@@ -5,7 +5,7 @@ frame: R^T (a_world + g e_z). At hover it reads (0, 0, 1) g; a vehicle that sudd
 as much at the same thrust reads about 2 g. The true value comes from the plant's own equations
 at the current state (thrust, drag, wind, a gust or a neighbour's downwash); the simulator's
 seeded generator adds Gaussian noise per sample (``sim.imu_noise``, m/s^2), so a lockstep flight
-reproduces. The reading is in g of ``FIRMWARE_G``, as the firmware logs it.
+reproduces, and a constant offset per axis (``sim.imu_bias``, m/s^2: the sensor's zero-g offset). The reading is in g of ``FIRMWARE_G``, as the firmware logs it.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ class Accelerometer:
         self._sim = sim
         self._gravity = float(sim.vehicle_config.gravity)
         self._noise = float(getattr(sim.sim_config, "imu_noise", 0.0))
+        self._bias = tuple(float(b) for b in getattr(sim.sim_config, "imu_bias", (0.0, 0.0, 0.0)))
         self._rng = np.random.default_rng(np.random.SeedSequence(sim.sim_config.seed, spawn_key=(_STREAM_KEY,)))
         self._t: float | None = None
         self._reading = (0.0, 0.0, 1.0)
@@ -66,6 +67,9 @@ class Accelerometer:
             if self._noise > 0.0:
                 n = self._rng.standard_normal(3) * self._noise
                 f = (f[0] + float(n[0]), f[1] + float(n[1]), f[2] + float(n[2]))
+            if any(self._bias):  # the ideal sensor's readings stay the same to the bit
+                b = self._bias
+                f = (f[0] + b[0], f[1] + b[1], f[2] + b[2])
             self._reading = (f[0] / FIRMWARE_G, f[1] / FIRMWARE_G, f[2] / FIRMWARE_G)
             self._t = t
             self.samples += 1

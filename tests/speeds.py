@@ -22,6 +22,10 @@ SPAWNS: Marks = (PROCESS, SLOW)
 BOTH: Marks = (FLIGHT, PROCESS, SLOW)
 
 SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
+    "test_accel_path.py": {
+        "*": FAST,
+        "test_through_the_cflib_log_path_the_fast_path_measures_the_plants_acceleration": FLIES,
+    },
     "test_adaptation.py": {
         "*": FLIES,
         "test_a_stalled_host_is_a_blind_spell_not_a_disturbance": FAST,

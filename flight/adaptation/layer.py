@@ -62,6 +62,7 @@ class LoopExtras:
     thrust_by_lag: np.ndarray | None = None
     lag: int = 0
     imu_theta: tuple[float, float] | None = None
+    accel_part: np.ndarray | None = None
 
 
 _NO_EXTRAS = LoopExtras()
@@ -134,6 +135,8 @@ class FastAdaptation:
         self._fit_frames = 0  # frames after the onset in the step's latest height fit
         self._theta_at_alarm = 1.0  # 1 / thrust scale when the frames' detector raised its alarm
         self._vetoed = False  # the accelerometer saw no step in this hold of the frames' detector
+        self._accel_part: np.ndarray | None = None  # the accelerometer's fast part this tick (accel_path.py)
+        self._accel_applied = np.zeros(3)  # the fast part inside the published offset
         self.resets += 1
 
     def update(
@@ -147,9 +150,11 @@ class FastAdaptation:
         thrust's vertical acceleration over the nominal mass under each candidate motor lag, ``lag`` the one
         ``u_applied`` used (a step's fit then tells the lag too: ``fit_lag``). ``imu_theta``: (time, theta) of an
         accelerometer sample new this tick, its specific force over the acting thrust's per nominal mass
-        (imu_step.py). Returns the estimate for this tick."""
+        (imu_step.py). ``accel_part``: what the accelerometer's fast path adds to the offset this tick
+        (accel_path.py), None without it. Returns the estimate for this tick."""
         u_commanded, thrust_by_lag = extras.u_commanded, extras.thrust_by_lag
         lag, imu_theta = extras.lag, extras.imu_theta
+        self._accel_part = extras.accel_part
         if not self.s.enabled:
             return self.estimate
         if not math.isfinite(float(v_meas.sum() + u_applied.sum() + model_acc.sum())):  # one check: nan, inf
@@ -166,7 +171,10 @@ class FastAdaptation:
             self._sync(v_meas)  # nothing learned while blind: the predictor restarts from the measurement
             self._frames.forget_velocity()
             self._fit.reset()
-            self.estimate = replace(self.estimate, frozen=True, saturated=thrust_sat or tilt_sat)
+            # Frozen: the slow estimate is held, but a fast part is only right for the moment it was measured.
+            held = self.estimate.offset - self._accel_applied
+            self._accel_applied = np.zeros(3)
+            self.estimate = replace(self.estimate, offset=held, frozen=True, saturated=thrust_sat or tilt_sat)
             self.applied = applied_estimate(self.estimate, self._engagement.acts)
             return self.estimate
 
@@ -333,7 +341,7 @@ class FastAdaptation:
             moved = sigma_after_transfer(sigma, u, self.g, scale, new_scale)
             self._shift_observer(moved - sigma, omega)
             self._sigma = moved
-        offset = self._published()
+        offset = self._with_fast_part(self._published(), stepping)
         # Second half: on a saturated axis the MPC's offset is held; a growing one would only push the plan
         # further into a limit it cannot act beyond (the mass estimate keeps learning from the flown thrust).
         if tilt_sat or thrust_sat:
@@ -348,6 +356,20 @@ class FastAdaptation:
         x, y, z = self._bounded_out()
         acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
         self.applied = applied_estimate(self.estimate, acts)
+
+    def _with_fast_part(self, offset: np.ndarray, stepping: bool) -> np.ndarray:
+        """The published offset plus the accelerometer's fast part, bounded. Not vertically while a step is
+        tracked: the step's fit sets the vertical estimate then, and the part would count the step twice."""
+        part = self._accel_part
+        if part is None:
+            self._accel_applied = np.zeros(3)
+            return offset
+        if stepping:
+            part = np.array([part[0], part[1], 0.0])
+        m = self.s.max_offset
+        total = np.clip(offset + part, -m, m)
+        self._accel_applied = total - offset
+        return total
 
     def _published(self) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the

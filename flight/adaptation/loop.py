@@ -19,6 +19,9 @@ import numpy as np
 
 from cfknode.flight.settings import ControllerConfig
 from cfknode.kernel.vehicle import VehicleConfig
+from cfknode.flight.adaptation.accel_path import (
+    AccelState, AccelTuning, accel_part, accel_step, saturated, world_residual,
+)
 from cfknode.flight.adaptation.estimate import AdaptationEstimate
 from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.settings import settings_from_controller
@@ -56,6 +59,8 @@ class LoopAdaptation:
         self._now = 0.0
         self._acting_recent: deque[tuple[float, float]] = deque(maxlen=64)  # (t, acting thrust N): 160 ms of ticks
         self._imu_t = -float("inf")  # the newest accelerometer sample used
+        self._accel_tuning = accel_tuning(self.layer)  # None: the fast path is off
+        self._accel: AccelState | None = None
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -73,6 +78,7 @@ class LoopAdaptation:
             self.layer.reset()
             self.lags.forget_velocity()
         self._have_command = False
+        self._accel = None
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
         if self._ground is None:
@@ -101,7 +107,9 @@ class LoopAdaptation:
         acting = self.lags.acting_all()
         by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
         imu = self._imu_theta(now, est) if airborne else None
-        extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu)
+        fast = self._accel_part(now, est, airborne)
+        extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
+                            accel_part=fast)
         self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne, extras)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
@@ -137,6 +145,39 @@ class LoopAdaptation:
         self.lags.observe_specific_force(float(imu.specific_force[2]), 1.0 / e.thrust_scale, self.vehicle.mass,
                                          learn=not (e.stepping or self._sat[0]))
         return imu.t, float(imu.specific_force[2]) * self.vehicle.mass / thrust
+
+    def _thrust_at(self, t: float) -> float | None:
+        """The acting thrust (N) of the tick a sample at ``t`` fell in; None before any."""
+        if not self._acting_recent:
+            return None
+        thrust = self._acting_recent[0][1]
+        for tick, value in self._acting_recent:
+            if tick > t:
+                break
+            thrust = value
+        return thrust
+
+    def _accel_part(self, now: float, est: Any, airborne: bool) -> np.ndarray | None:
+        """The accelerometer fast path's part this tick (accel_path.py), None when it is off, on the ground, or
+        without a usable sample for ``accel_stale_s``. A new sample's residual is its measured acceleration in
+        the world less the model's for the thrust acting when it was measured, along the measured attitude."""
+        tuning = self._accel_tuning
+        if tuning is None:
+            return None
+        if not airborne:  # the floor's reaction is no disturbance to learn
+            self._accel = None
+            return None
+        imu = getattr(est, "imu", None)
+        newest = self._accel.t if self._accel is not None else -float("inf")
+        if imu is not None and imu.t > newest and not saturated(imu.specific_force):
+            thrust = self._thrust_at(imu.t)
+            if thrust is not None:
+                mass = self.vehicle.mass * self.layer.estimate.thrust_scale
+                model = (thrust / mass) * body_z(est.q) + self._r  # gravity cancels: world_residual takes g e_z
+                model[2] -= self.vehicle.gravity
+                d = world_residual(est.q, imu.specific_force, self.vehicle.gravity, model)
+                self._accel = accel_step(self._accel, imu.t, d, tuning)
+        return accel_part(self._accel, now, tuning)
 
     def flown_acc(self, bz: np.ndarray) -> np.ndarray:
         """The last command as flown: the acting thrust along the measured body z axis ``bz``, over the estimated
@@ -215,6 +256,16 @@ class LoopAdaptation:
         return {"stepping_end": self.layer.estimate.stepping, "stepping_ticks": self.stepping_ticks,
                 "frozen_ticks": self.frozen_ticks, "longest_step_s": round(self.longest_step_s, 4),
                 "steps_capped": self.layer.tracker.capped}
+
+
+def accel_tuning(layer: FastAdaptation) -> AccelTuning | None:
+    """The fast path's constants from the layer's settings: it complements the layer's own observer and output
+    poles (x, y, vertical). None when ``accel_cutoff_hz`` is 0 or the layer is off."""
+    s = layer.s
+    if s.accel_cutoff_hz <= 0.0 or not s.enabled:
+        return None
+    return AccelTuning(s.accel_cutoff_hz, layer.omega.copy(), layer.omega_out.copy(), s.accel_max_offset,
+                       s.accel_stale_s)
 
 
 def measured_position(est: Any) -> np.ndarray:
