@@ -61,7 +61,7 @@ def add_hardware_arguments(p: argparse.ArgumentParser) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p)
     add_hardware_arguments(p)
-    p.add_argument("--traj", choices=["hover", "circle", "figure8"], help="trajectory kind")
+    p.add_argument("--traj", choices=["hover", "circle", "figure8", "line", "vertical"], help="trajectory kind")
     p.add_argument("--radius", type=float, help="pattern radius [m]")
     p.add_argument("--speed", type=float, help="pattern speed [m/s]")
     p.add_argument("--height", type=float, help="flight height [m]")
