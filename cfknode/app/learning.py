@@ -90,6 +90,7 @@ def learner_settings(
         monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
         if o.monitor else None,
         ground_z=ground_z,
+        min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
     )
 

@@ -75,6 +75,8 @@ class OnlineConfig:
         doc="lockstep flights' delay from a window's end to its model flying: cpu | fixed | wall")
     fixed_latency_s: float = setting(unit="s", low=0, high=60, doc="latency: fixed")
     latency_quantum_s: float = setting(unit="s", low=0, high=1, doc="latency: cpu")
+    min_height: float = setting(unit="m", low=0, high=2,
+        doc="ticks closer than this to the floor are not learned from (lower it to learn ground effect)")
     inject: FaultInjection
 
 
