@@ -139,3 +139,19 @@ def test_quick_bench_flies_every_row_through_the_real_path(tmp_path, capsys):
     assert all(r["cell"] == QUICK_CELLS[0] and r["mse"] > 0.0 for r in data["runs"])
     md = (tmp_path / "learning_quick.md").read_text()
     assert md.count("| KNODE-MPC-Online") == 2 and md.count("| nominal MPC") == 1 and md.count("| MPC + layer") == 1
+
+
+def test_a_crossing_cell_hovers_one_drone_over_the_other_s_line_for_ten_passes():
+    from cfknode.flight.formation import fleet_references
+
+    cell = BY_NAME["crossing dz=0.3 v=1"]
+    cfg = load_config(overrides=cell.config("layer", 0, "/tmp"))
+    assert cfg.fleet.layout == "crossing" and cfg.fleet.min_separation < cell.spacing
+    (s_low, low), (s_high, high) = fleet_references(cfg.trajectory, 2, "crossing", 0.0, cfg.fleet.stack_spacing,
+                                                    cfg.fleet.ground_spacing)
+    passes = low.phase_times(math.pi)
+    assert len(passes) == 10
+    under, above = low.sample(passes), high.sample(passes)
+    assert np.allclose(above.p - under.p, [0.0, 0.0, 0.3], atol=1e-6)  # right under the hovering drone
+    assert np.all(np.abs(under.v[:, 0]) == pytest.approx(1.0, rel=1e-3))  # at the cell's speed
+    assert s_high[1] - s_low[1] == pytest.approx(cfg.fleet.ground_spacing)  # they start side by side

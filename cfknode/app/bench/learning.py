@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, GROUPS, LABELS, QUICK_CELLS, QUICK_DURATION,
-                                              LearnCell, ground_threshold, refusal)
+                                              LearnCell, ground_threshold, pass_errors, refusal)
 from cfknode.app.bench.rows import DEFAULT_FIXED_LATENCY_S
 
 
@@ -45,6 +45,7 @@ class Run:
     windows: int
     wall_s: float
     mse_other: float = math.nan
+    passes: tuple[float, ...] = ()  # a crossing cell: MSE of the lower drone around each pass under the wake
 
 
 @dataclass(frozen=True)
@@ -91,16 +92,26 @@ def run_job(job: Job) -> Run:
             fell, tripped = fell or f, tripped or s
         s, outcome = low.summary, "; ".join(f"{d.name}: {d.outcome.message}" for d in res.drones)
         other = float(np.mean([d.summary.mse for d in others]))
+        passes = crossing_passes(cfg, low.record) if job.cell.layout == "crossing" else ()
     else:
         from cfknode.app.mission import run_flight
 
         one = run_flight(cfg, name_hint=slug)
-        s, outcome, other = one.summary, one.outcome.message, math.nan
+        s, outcome, other, passes = one.summary, one.outcome.message, math.nan, ()
         fell, tripped = _verdicts(job.cell, s, one.record, one.outcome)
     extra = s.extra
     return Run(job.cell.name, job.controller, job.seed, float(s.mse), float(s.mse_z), float(s.max_error), fell, tripped,
                outcome, int(extra.get("models_accepted") or 0), int(extra.get("windows_completed") or 0),
-               time.perf_counter() - start, other)
+               time.perf_counter() - start, other, passes)
+
+
+def crossing_passes(cfg: Any, record: Any) -> tuple[float, ...]:
+    """MSE of ``record`` in the window around each time its line crosses the centre, under the drone above."""
+    from cfknode.flight.trajectory import make_trajectory
+
+    times = make_trajectory(cfg.trajectory, (0.0, 0.0, 0.0)).phase_times(math.pi)  # the crossings need no start
+    err2 = np.sum((record.p - record.p_ref) ** 2, axis=1) / 3.0  # mean over the axes, as the MSE
+    return tuple(float(v) for v in pass_errors(record.t, err2, times))
 
 
 # --- report ------------------------------------------------------------------------------------
@@ -147,8 +158,21 @@ def cell_table(cell: LearnCell, runs: list[Run], controllers: tuple[str, ...]) -
         lines.append(f"| {LABELS[c]} | {mse} | {1000 * np.median([r.max_error for r in rs]):.1f} | "
                      + " | ".join("-" if not math.isfinite(v) or c == d else f"{v:.2f}" for v, d in zip(vs, ("layer", "nominal")))
                      + f" | {int(np.median([r.models_accepted for r in rs]))} | {sum(r.fell for r in rs)} | "
-                     f"{sum(r.tripped for r in rs)} |")
+                     f"{sum(r.tripped for r in rs)} |" + (pass_cells(rs) if cell.layout == "crossing" else ""))
+    if cell.layout == "crossing":
+        lines[2] += " pass 1 [m^2] | last pass [m^2] | last / first | passes |"
+        lines[3] += "---|---|---|---|"
     return lines
+
+
+def pass_cells(runs: list[Run]) -> str:
+    """' first | last | last / first | n |': medians over the seeds of the first and the last pass's MSE."""
+    firsts = [r.passes[0] for r in runs if r.passes and math.isfinite(r.passes[0])]
+    lasts = [r.passes[-1] for r in runs if r.passes and math.isfinite(r.passes[-1])]
+    if not firsts or not lasts:
+        return " - | - | - | 0 |"
+    first, last = float(np.median(firsts)), float(np.median(lasts))
+    return f" {first:.3g} | {last:.3g} | {last / first:.2f} | {min(len(r.passes) for r in runs)} |"
 
 
 def markdown(cells: list[LearnCell], refused: list[str], runs: list[Run], controllers: tuple[str, ...],

@@ -7,6 +7,9 @@ something to learn that the fast layer's 0.5-1 Hz offset cannot follow.
   every half period;
 - surface: a back-and-forth line a few cm over the floor, in ground effect (which the layer does not see:
   it freezes below ``flight.adaptation.loop.GROUND_MARGIN``), the online learner's training floor lowered;
+- downwash crossing: two drones, one hovering 0.2-0.5 m over the centre of the other's back-and-forth line,
+  so the lower one passes through the wake ten times: the error around each pass, and pass 10 against pass 1
+  (a learner should have learned the wake by then; a layer forgets it between passes);
 - stacked pair: two drones on one circle, the upper one's wake on the lower one (fleet online learning).
 
 A cell is a set of config overrides; every controller row adds its own (``CONTROLLERS``). What the
@@ -55,6 +58,7 @@ class LearnCell:
     duration: float = 8.0
     fleet: int = 1
     spacing: float = 0.5
+    layout: str = "stack"  # a fleet's: stack (same pattern, higher) or crossing (hovering over a line's centre)
     overrides: tuple[tuple[str, Any], ...] = ()
 
     @property
@@ -97,7 +101,9 @@ class LearnCell:
         if tilt + TILT_MARGIN_DEG > 30.0:
             base["controller.max_tilt_deg"] = min(MAX_PLANNED_TILT_DEG, math.ceil(tilt + TILT_MARGIN_DEG))
         if self.fleet > 1:
-            base.update({"fleet.size": self.fleet, "fleet.layout": "stack", "fleet.stack_spacing": self.spacing})
+            # The cell is about flying close under another drone: the fleet's keep-apart rule at half the spacing.
+            base.update({"fleet.size": self.fleet, "fleet.layout": self.layout, "fleet.stack_spacing": self.spacing,
+                         "fleet.min_separation": min(0.3, 0.5 * self.spacing)})
         return {**base, **dict(self.overrides), **CONTROLLERS[controller]}
 
 
@@ -151,12 +157,29 @@ def _surface() -> tuple[LearnCell, ...]:
                  for h, v in ((0.06, 0.5), (0.06, 1.0)))
 
 
+def line_duration(radius: float, speed: float, passes: int, ramp: float = 1.0) -> float:
+    """s of a line pattern that crosses its centre ``passes`` times (and ends half a swing later): the phase
+    w (duration - ramp) = (passes + 1/2) pi, w = speed / radius."""
+    return ramp + (passes + 0.5) * math.pi * radius / speed
+
+
+CROSSING_PASSES = 10
+CROSSING_RADIUS = 0.3  # m: 5 wake widths (sim.aero_terms.downwash_width) either side of the centre
+
+
+def _crossing() -> tuple[LearnCell, ...]:
+    return tuple(LearnCell(f"crossing dz={dz:g} v={v:g}", "crossing", "line", CROSSING_RADIUS, v, height=1.0,
+                           duration=line_duration(CROSSING_RADIUS, v, CROSSING_PASSES), fleet=2, spacing=dz,
+                           layout="crossing")
+                 for dz in (0.2, 0.3, 0.5) for v in (0.5, 1.0, 1.5))
+
+
 def _stack() -> tuple[LearnCell, ...]:
     return (LearnCell("stacked pair 0.5 m, r=0.5 v=0.4", "stack", "circle", 0.5, 0.4, fleet=2, spacing=0.5),)
 
 
-CELLS: tuple[LearnCell, ...] = _loops() + _vertical() + _surface() + _stack()
-GROUPS = ("loops", "vertical", "surface", "stack")
+CELLS: tuple[LearnCell, ...] = _loops() + _vertical() + _surface() + _crossing() + _stack()
+GROUPS = ("loops", "vertical", "surface", "crossing", "stack")
 QUICK_CELLS = ("circle r=0.5 v=1",)  # one small cell: the smoke test of the whole path
 QUICK_DURATION = 4.0  # s of pattern with --quick
 
@@ -179,4 +202,4 @@ def ground_threshold(cell: LearnCell) -> float:
 
 
 __all__ = ["CELLS", "CONTROLLERS", "GROUPS", "LABELS", "LearnCell", "MAX_PLANNED_TILT_DEG", "PASS_HALF_WINDOW_S", "QUICK_CELLS",
-           "QUICK_DURATION", "SURFACE_MIN_HEIGHT", "ground_threshold", "pass_errors", "refusal", "required_tilt_deg"]
+           "QUICK_DURATION", "SURFACE_MIN_HEIGHT", "CROSSING_PASSES", "line_duration", "ground_threshold", "pass_errors", "refusal", "required_tilt_deg"]
