@@ -35,9 +35,6 @@ from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.flight.learning.trainer_client import TrainerClient
 from cfknode.models.trainer_process import TrainerSettings
 
-# Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
-READY_TIMEOUT_S = 120.0
-
 
 def check_online(cfg: Config) -> None:
     """Refuse configurations online learning cannot fly (one-line ``ConfigError``)."""
@@ -125,10 +122,10 @@ def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | No
     if not cfg.online.enabled:
         yield None
         return
-    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout)
+    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout, start_timeout=cfg.online.trainer_start_timeout)
     client.start()
     try:
-        if wait and not client.wait_ready(READY_TIMEOUT_S):
+        if wait and not client.wait_ready(cfg.online.trainer_start_timeout):
             raise ConfigError(client.start_problem)
         yield client
     finally:
