@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from cfknode.app.bench.learning import Job, Run, flight_overrides, markdown, ratio, select_cells
+from cfknode.app.bench.learning import Job, Run, flight_overrides, markdown, ratio, run_job, select_cells
 from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, LearnCell, QUICK_CELLS, SURFACE_MIN_HEIGHT,
                                               ground_threshold, pass_errors, refusal)
 from cfknode.app.config import load_config
@@ -155,3 +155,14 @@ def test_a_crossing_cell_hovers_one_drone_over_the_other_s_line_for_ten_passes()
     assert np.allclose(above.p - under.p, [0.0, 0.0, 0.3], atol=1e-6)  # right under the hovering drone
     assert np.all(np.abs(under.v[:, 0]) == pytest.approx(1.0, rel=1e-3))  # at the cell's speed
     assert s_high[1] - s_low[1] == pytest.approx(cfg.fleet.ground_spacing)  # they start side by side
+
+
+def test_a_flight_that_could_not_fly_is_a_row_not_the_end_of_the_bench():
+    cell = BY_NAME["circle r=0.5 v=1"]
+    # A job whose config is refused (a seed out of range) stands for any flight that raises.
+    run = run_job(Job(cell, "online", -5, "/tmp", 4.0))
+    assert math.isnan(run.mse) and run.tripped and run.outcome.startswith("did not fly")
+    ok = Run(cell.name, "layer", -5, 1e-4, 0.0, 0.01, False, False, "flight complete: landed", 0, 0, 1.0)
+    md = markdown([cell], [], [ok, run], tuple(CONTROLLERS), "cmd", "0.1.0", "full", "dob")
+    assert "| KNODE-MPC-Online (paper) | did not fly |" in md and "Did not fly (counted as trips)" in md
+    assert math.isnan(ratio([ok, run], cell.name, "online", "layer"))

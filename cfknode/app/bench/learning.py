@@ -73,10 +73,19 @@ def _verdicts(cell: LearnCell, summary: Any, record: Any, outcome: Any) -> tuple
 
 
 def run_job(job: Job) -> Run:
-    """One flight (a fleet flight for a stacked cell) and its verdicts; the bench executor's task."""
+    """One flight (a fleet flight for a stacked cell) and its verdicts; the bench executor's task. A flight that
+    could not fly (its trainer did not start, say) is a row of its own, not the end of the bench."""
+    start = time.perf_counter()
+    try:
+        return _fly(job, start)
+    except Exception as exc:  # noqa: BLE001 - every other flight still flies; the error is reported in the table
+        return Run(job.cell.name, job.controller, job.seed, math.nan, math.nan, math.nan, False, True,
+                   f"did not fly: {exc}", 0, 0, time.perf_counter() - start)
+
+
+def _fly(job: Job, start: float) -> Run:
     from cfknode.app.config import load_config
 
-    start = time.perf_counter()
     cfg = load_config(overrides=flight_overrides(job))
     slug = f"{job.cell.name}-{job.controller}-s{job.seed}".replace(" ", "_").replace("=", "").replace("+", "p")
     if job.cell.fleet > 1:
@@ -124,8 +133,9 @@ def median_mse(runs: list[Run], cell: str, controller: str) -> float:
 
 def ratio(runs: list[Run], cell: str, num: str, den: str) -> float:
     """Median over the seeds of ``num``'s MSE over ``den``'s, seed by seed (NaN without a pair)."""
-    by = {r.seed: r.mse for r in runs if r.cell == cell and r.controller == den}
-    r = [x.mse / by[x.seed] for x in runs if x.cell == cell and x.controller == num and by.get(x.seed, 0.0) > 0.0]
+    by = {r.seed: r.mse for r in runs if r.cell == cell and r.controller == den and math.isfinite(r.mse)}
+    r = [x.mse / by[x.seed] for x in runs
+         if x.cell == cell and x.controller == num and math.isfinite(x.mse) and by.get(x.seed, 0.0) > 0.0]
     return float(np.median(r)) if r else math.nan
 
 
@@ -147,7 +157,10 @@ def cell_table(cell: LearnCell, runs: list[Run], controllers: tuple[str, ...]) -
              "| controller | MSE [m^2] | max error [mm] | / layer | / nominal | models kept | falls | trips |",
              "|---|---|---|---|---|---|---|---|"]
     for c in controllers:
-        rs = [r for r in mine if r.controller == c]
+        rs = [r for r in mine if r.controller == c and math.isfinite(r.mse)]
+        lost = [r for r in mine if r.controller == c and not math.isfinite(r.mse)]
+        if lost and not rs:
+            lines.append(f"| {LABELS[c]} | did not fly | - | - | - | - | 0 | {len(lost)} |")
         if not rs:
             continue
         m = np.array([r.mse for r in rs])
@@ -162,6 +175,10 @@ def cell_table(cell: LearnCell, runs: list[Run], controllers: tuple[str, ...]) -
     if cell.layout == "crossing":
         lines[2] += " pass 1 [m^2] | last pass [m^2] | last / first | passes |"
         lines[3] += "---|---|---|---|"
+    lost = [r for r in mine if not math.isfinite(r.mse)]
+    if lost:
+        lines += ["", "Did not fly (counted as trips): " + "; ".join(f"{LABELS[r.controller]} seed {r.seed}: {r.outcome}"
+                                                                    for r in lost)]
     return lines
 
 

@@ -41,6 +41,7 @@ LABELS = {
 TILT_MARGIN_DEG = 10.0  # the MPC may tilt this much more than the pattern needs: room to correct errors
 MAX_PLANNED_TILT_DEG = 50.0  # deg: 10 under the supervisor's tumble limit (safety.max_tilt_deg, 60)
 SURFACE_MIN_HEIGHT = 0.02  # m: the surface cells' training floor (online.min_height), under their 4-8 cm
+TRAINER_START_S = 900.0  # s: a trainer start under a load of 40 processes on 2 cores took over 120
 PASS_HALF_WINDOW_S = 0.3  # s either side of a pass: the window its error is measured over
 
 
@@ -93,6 +94,8 @@ class LearnCell:
             "safety.fence_min": [-span, -span, -0.2],
             "safety.fence_max": [span, span, max(3.0, top + 1.0)],
             "safety.max_tracking_error": 3.0,
+            # Lockstep waits for its trainer, so a slow start on a loaded machine delays a flight, not its numbers.
+            "online.trainer_start_timeout": TRAINER_START_S,
             "sim.seed": seed,
             "log.dir": log_dir,
             "dashboard.enabled": False,
