@@ -139,6 +139,7 @@ def test_quick_bench_flies_every_row_through_the_real_path(tmp_path, capsys):
     assert all(r["cell"] == QUICK_CELLS[0] and r["mse"] > 0.0 for r in data["runs"])
     md = (tmp_path / "learning_quick.md").read_text()
     assert md.count("| KNODE-MPC-Online") == 2 and md.count("| nominal MPC") == 1 and md.count("| MPC + layer") == 1
+    assert len((tmp_path / "learning_quick_runs.jsonl").read_text().splitlines()) == 4  # each flight as it landed
 
 
 def test_a_crossing_cell_hovers_one_drone_over_the_other_s_line_for_ten_passes():

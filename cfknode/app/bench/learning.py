@@ -294,14 +294,21 @@ def run_learning(args: argparse.Namespace, version: str) -> int:
     console = Console(stderr=args.json)
     console.print(f"bench learning: {len(cells)} cell(s) x {len(controllers)} controllers x {len(seeds)} seed(s) = "
                   f"{len(jobs)} flights on {executor.describe()}" + (f"; {len(refused)} refused" if refused else ""))
-    runs: list[Run] = run_ordered(run_job, jobs, executor, "bench learning", console=console,
-                                  describe=lambda i, r: f"{r.cell} / {r.controller} / seed {r.seed}: {r.mse:.3g}")
+    stem = "learning" + ("_quick" if args.quick else "")
+    done = out / f"{stem}_runs.jsonl"  # each flight as it lands: a bench stopped midway keeps what it flew
+    done.write_text("")
+
+    def landed(i: int, r: Run) -> str:
+        with done.open("a") as f:
+            f.write(json.dumps(_finite(asdict(r))) + "\n")
+        return f"{r.cell} / {r.controller} / seed {r.seed}: {r.mse:.3g}"
+
+    runs: list[Run] = run_ordered(run_job, jobs, executor, "bench learning", console=console, describe=landed)
     shown = [replace(c, duration=duration or c.duration) for c in cells]
     md = markdown(shown, refused, runs, controllers, command, version, mode, base.controller.adaptation)
     payload = {"command": command, "version": version, "mode": mode, "layer": base.controller.adaptation,
                "seeds": list(seeds), "refused": refused, "cells": [asdict(c) for c in shown],
                "runs": [asdict(r) for r in runs]}
-    stem = "learning" + ("_quick" if args.quick else "")
     (out / f"{stem}.md").write_text(md + "\n")
     text = json.dumps(_finite(payload), indent=1, default=str)
     (out / f"{stem}.json").write_text(text)
