@@ -145,7 +145,9 @@ def _cell_heading(cell: LearnCell) -> str:
                         f"({cell.frequency_hz:.2f} Hz)",
             "line": f"back and forth +-{cell.radius:g} m along x at {100 * cell.height:g} cm, peak {cell.speed:g} m/s"}
     text = what.get(cell.kind, cell.kind) + f", peak acceleration {cell.peak_acceleration:.1f} m/s^2"
-    if cell.fleet > 1:
+    if cell.layout == "crossing":
+        text += f"; cf2 hovers {cell.spacing:g} m over the line's centre, cf1 (under it) measured"
+    elif cell.fleet > 1:
         text += f"; {cell.fleet} drones stacked {cell.spacing:g} m apart, the lowest measured"
     return text
 
@@ -210,7 +212,7 @@ def markdown(cells: list[LearnCell], refused: list[str], runs: list[Run], contro
     rows = [(c.name, ratio(runs, c.name, "online+layer", "layer"), ratio(runs, c.name, "online+layer", "nominal"),
              ratio(runs, c.name, "online", "nominal")) for c in cells if any(r.cell == c.name for r in runs)]
     lines += ["", "| cell | online+layer / layer | online+layer / nominal | online (paper) / nominal |", "|---|---|---|---|"]
-    lines += [f"| {n} | {a:.2f} | {b:.2f} | {c:.2f} |" for n, a, b, c in rows]
+    lines += [f"| {n} | " + " | ".join(f"{v:.2f}" if math.isfinite(v) else "-" for v in vs) + " |" for n, *vs in rows]
     return "\n".join(lines)
 
 
