@@ -57,7 +57,7 @@ def test_what_the_crazyflie_cannot_fly_is_refused_with_the_reason():
     assert "clamp" in _refusal(fast)
     assert "up" in _refusal(BY_NAME["vertical A=0.3 f=1"])
     for name in ("circle r=0.3 v=1", "circle r=0.3 v=1.5", "circle r=0.5 v=2", "vertical A=0.5 f=0.5",
-                 "surface h=6 cm v=1", "stacked pair 0.5 m, r=0.5 v=0.4"):
+                 "surface h=6 cm v=1", "stacked pair dz=0.5 r=0.5 v=0.4"):
         assert _refusal(BY_NAME[name]) is None, name
 
 
@@ -92,7 +92,7 @@ def test_surface_transit_flies_in_ground_effect_with_the_training_floor_under_it
 
 
 def test_the_stacked_pair_is_a_stack_fleet_of_two():
-    cfg = load_config(overrides=BY_NAME["stacked pair 0.5 m, r=0.5 v=0.4"].config("online", 0, "/tmp"))
+    cfg = load_config(overrides=BY_NAME["stacked pair dz=0.5 r=0.5 v=0.4"].config("online", 0, "/tmp"))
     assert cfg.fleet.size == 2 and cfg.fleet.layout == "stack" and cfg.fleet.stack_spacing == 0.5
     assert cfg.safety.fence_max[2] > cfg.trajectory.height + 0.5  # the upper drone inside the fence
 
@@ -167,3 +167,8 @@ def test_a_flight_that_could_not_fly_is_a_row_not_the_end_of_the_bench():
     md = markdown([cell], [], [ok, run], tuple(CONTROLLERS), "cmd", "0.1.0", "full", "dob")
     assert "| KNODE-MPC-Online (paper) | did not fly |" in md and "Did not fly (counted as trips)" in md
     assert math.isnan(ratio([ok, run], cell.name, "online", "layer"))
+
+
+def test_every_cell_can_be_named_on_the_command_line():
+    assert all("," not in c.name for c in CELLS)  # --cells splits on commas
+    assert [c.name for c in select_cells(_args(cells=",".join(c.name for c in CELLS)))] == [c.name for c in CELLS]

@@ -140,6 +140,7 @@ def refusal(cell: LearnCell, vehicle: Any, min_thrust_fraction: float, max_thrus
 def _loops() -> tuple[LearnCell, ...]:
     # r = 0.3 m at 2 m/s needs 13.3 m/s^2, past the Crazyflie's clamp (refused); 1.5 m/s is the fastest
     # small loop it flies with a margin.
+    # Names carry no comma: --cells is a comma-separated list.
     return tuple(LearnCell(f"circle r={r:g} v={v:g}", "loops", "circle", r, v)
                  for r, v in ((0.3, 1.0), (0.3, 1.5), (0.3, 2.0), (0.5, 1.0), (0.5, 2.0)))
 
@@ -178,7 +179,7 @@ def _crossing() -> tuple[LearnCell, ...]:
 
 
 def _stack() -> tuple[LearnCell, ...]:
-    return (LearnCell("stacked pair 0.5 m, r=0.5 v=0.4", "stack", "circle", 0.5, 0.4, fleet=2, spacing=0.5),)
+    return (LearnCell("stacked pair dz=0.5 r=0.5 v=0.4", "stack", "circle", 0.5, 0.4, fleet=2, spacing=0.5),)
 
 
 CELLS: tuple[LearnCell, ...] = _loops() + _vertical() + _surface() + _crossing() + _stack()
