@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from cfknode.app.bench.learning import Job, Run, flight_overrides, markdown, ratio, run_job, select_cells
+from cfknode.app.bench.learning import (Job, Run, cell_refusal, flight_overrides, markdown, ratio, run_job,
+                                        select_cells)
 from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, LearnCell, QUICK_CELLS, SURFACE_MIN_HEIGHT,
                                               ground_threshold, pass_errors, refusal)
 from cfknode.app.config import load_config
@@ -30,7 +31,7 @@ def _args(**kw) -> argparse.Namespace:
 
 
 def test_every_cell_loads_flies_the_realistic_plant_and_its_pattern():
-    for cell in (c for c in CELLS if _refusal(c) is None):
+    for cell in (c for c in CELLS if cell_refusal(c) is None):
         for controller in CONTROLLERS:
             cfg = load_config(overrides=flight_overrides(Job(cell, controller, 1, "/tmp", 6.0)))
             assert cfg.sim.aero == "realistic" and cfg.sim.seed == 1 and cfg.online.latency == "fixed"
@@ -56,9 +57,12 @@ def test_what_the_crazyflie_cannot_fly_is_refused_with_the_reason():
     assert fast.peak_acceleration == pytest.approx(4.0 / 0.3)
     assert "clamp" in _refusal(fast)
     assert "up" in _refusal(BY_NAME["vertical A=0.3 f=1"])
-    for name in ("circle r=0.3 v=1", "circle r=0.3 v=1.5", "circle r=0.5 v=2", "vertical A=0.5 f=0.5",
+    # Past the reserve the pre-flight check keeps, though under the clamp: refused by the flights' own check.
+    assert _refusal(BY_NAME["vertical A=0.5 f=0.5"]) is None
+    assert "needs 14.74 m/s^2 of thrust" in cell_refusal(BY_NAME["vertical A=0.5 f=0.5"])
+    for name in ("circle r=0.3 v=1", "circle r=0.3 v=1.5", "circle r=0.5 v=2", "vertical A=0.4 f=0.5",
                  "surface h=6 cm v=1", "stacked pair dz=0.5 r=0.5 v=0.4"):
-        assert _refusal(BY_NAME[name]) is None, name
+        assert cell_refusal(BY_NAME[name]) is None, name
 
 
 def test_fast_loops_get_the_tilt_they_need_plus_a_margin():
@@ -69,13 +73,13 @@ def test_fast_loops_get_the_tilt_they_need_plus_a_margin():
 
 
 def test_vertical_cells_climb_at_their_peak_rate_and_frequency():
-    cell = BY_NAME["vertical A=0.5 f=0.5"]
+    cell = BY_NAME["vertical A=0.4 f=0.5"]
     cfg = load_config(overrides=cell.config("layer", 0, "/tmp"))
     ref = make_trajectory(cfg.trajectory, cfg.sim.initial_position)
     t0, t1 = ref.pattern_window
     s = ref.sample(np.arange(t0, t1, 1e-3))
-    assert np.max(s.v[:, 2]) == pytest.approx(2.0 * math.pi * 0.5 * 0.5, rel=1e-3)  # the climb rate the inflow sees
-    assert np.ptp(s.p[:, 2]) == pytest.approx(1.0, abs=1e-3) and np.allclose(s.v[:, :2], 0.0)
+    assert np.max(s.v[:, 2]) == pytest.approx(2.0 * math.pi * 0.5 * 0.4, rel=1e-3)  # the climb rate the inflow sees
+    assert np.ptp(s.p[:, 2]) == pytest.approx(0.8, abs=1e-3) and np.allclose(s.v[:, :2], 0.0)
     assert cell.frequency_hz == pytest.approx(0.5)
 
 
@@ -107,7 +111,7 @@ def test_pass_errors_average_each_window_around_its_pass():
 def test_cells_are_selected_by_group_name_and_quick():
     assert {c.group for c in select_cells(_args(groups="loops"))} == {"loops"}
     assert [c.name for c in select_cells(_args(quick=True))] == list(QUICK_CELLS)
-    assert [c.name for c in select_cells(_args(cells="vertical A=0.5 f=0.5"))] == ["vertical A=0.5 f=0.5"]
+    assert [c.name for c in select_cells(_args(cells="vertical A=0.4 f=0.5"))] == ["vertical A=0.4 f=0.5"]
     from cfknode.app.errors import UsageError
 
     with pytest.raises(UsageError):

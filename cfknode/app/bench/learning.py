@@ -251,6 +251,18 @@ def select_cells(args: argparse.Namespace) -> list[LearnCell]:
     return [c for c in CELLS if (c.name in names) or (not names and c.group in groups)]
 
 
+def cell_refusal(cell: LearnCell, extra: tuple[tuple[str, Any], ...] = ()) -> str | None:
+    """Why ``cell`` is not flown (None: it is): the pattern's peak acceleration against the Crazyflie's thrust
+    (``refusal``), then the pre-flight check every flight passes (which also keeps a reserve for tilt)."""
+    from cfknode.app.config import load_config
+    from cfknode.app.trajectory_fit import trajectory_problem
+
+    cfg = load_config(overrides=flight_overrides(Job(cell, "layer", 0, tempfile.gettempdir(), cell.duration, extra)))
+    why = refusal(cell, cfg.vehicle, cfg.controller.min_thrust_fraction, cfg.controller.max_thrust_fraction)
+    problem = None if why else trajectory_problem(cfg)
+    return why or (f"{cell.name}: {problem}" if problem else None)
+
+
 def _parse_sets(items: list[str]) -> tuple[tuple[str, Any], ...]:
     import yaml
 
@@ -282,7 +294,7 @@ def run_learning(args: argparse.Namespace, version: str) -> int:
     base = load_config(overrides=dict(extra))
     cells, refused = [], []
     for cell in select_cells(args):
-        why = refusal(cell, base.vehicle, base.controller.min_thrust_fraction, base.controller.max_thrust_fraction)
+        why = cell_refusal(cell, extra)
         (refused.append(why) if why else cells.append(cell))
     seeds = (0,) if args.quick else tuple(range(args.seeds))
     duration = args.duration or (QUICK_DURATION if args.quick else 0.0)
