@@ -2,7 +2,7 @@
 something to learn that the fast layer's 0.5-1 Hz offset cannot follow.
 
 - loops: small fast circles, the rotor drag and the speed-dependent fast force turning with the velocity
-  once per lap (1-7 Hz here), faster than the layer's filters;
+  once per lap (0.3-1 Hz here), at or above the layer's 0.5 Hz horizontal filters;
 - vertical: an up-and-down oscillation, where the inflow term (thrust lost per climb rate) reverses
   every half period;
 - surface: a back-and-forth line a few cm over the floor, in ground effect (which the layer does not see:
