@@ -7,6 +7,10 @@
   start side by side on the ground (``ground_spacing`` apart) and each stays on the pattern
   long enough longer than the one below to land ``ground_spacing`` further along the circle,
   so no two land on the same spot.
+- ``crossing``: two drones; the first flies the pattern (a line: back and forth through its
+  centre), the second hovers ``stack_spacing`` above the pattern's centre for as long, so the
+  first passes under its wake at every crossing. The second starts ``ground_spacing`` to the
+  side and lands straight down at the centre.
 
 ``HoldableReference`` lets the fleet freeze one drone's reference where the drone is (hover
 in place), e.g. when two drones came too close, or glide it clear of the drones below first.
@@ -147,7 +151,14 @@ def fleet_references(
             start = _under_first_point(level, ground_z) + np.array([0.0, i * ground_spacing, 0.0])
             out.append((start, make_trajectory(level, start)))
         return out
-    raise ValueError(f"unknown fleet layout {layout!r} (ring or stack)")
+    if layout == "crossing":
+        if n != 2:
+            raise ValueError(f"the crossing layout flies two drones, not {n}")
+        start = _under_first_point(cfg, ground_z)
+        above = dataclasses.replace(cfg, kind="hover", height=cfg.height + stack_spacing)
+        start_above = np.array([center[0], center[1] + ground_spacing, ground_z])
+        return [(start, make_trajectory(cfg, start)), (start_above, make_trajectory(above, start_above))]
+    raise ValueError(f"unknown fleet layout {layout!r} (ring, stack or crossing)")
 
 
 def _under_first_point(cfg: TrajectoryConfig, ground_z: float) -> np.ndarray:

@@ -121,12 +121,14 @@ class EstimatorConfig:
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "circle", "figure8"] = setting(doc="hover | circle | figure8")
-    radius: float = setting(unit="m", low=0.05, high=5, doc="m (circle radius; figure-8 half-width)")
+    kind: Literal["hover", "circle", "figure8", "line", "vertical"] = setting(
+        doc="hover | circle | figure8 | line (back and forth along x) | vertical (up and down)")
+    radius: float = setting(unit="m", low=0.05, high=5,
+        doc="m (circle radius; figure-8 half-width; line or vertical amplitude)")
     speed: float = setting(unit="m/s", low=0.01, high=5,
-        doc="tangential speed on the circle / peak-ish speed on the figure-8")
+        doc="tangential speed on the circle / peak-ish speed on the figure-8 / peak speed of a line or vertical")
     center: tuple[float, float] = setting(unit="m", low=-50, high=50, doc="world x y of the pattern")
-    height: float = setting(unit="m", low=0.1, high=5, doc="flight altitude")
+    height: float = setting(unit="m", low=0.03, high=5, doc="flight altitude (below 0.1 m: a surface transit, in ground effect)")
     duration: float = setting(unit="s", low=0, high=3600, doc="s on the pattern (circle or figure-8) or in hover")
     takeoff_duration: float = setting(unit="s", low=0.5, high=60,
         doc="smooth climb from the start pose to the pattern's first point")

@@ -82,6 +82,11 @@ class Trajectory:
             # peaks at the centre crossing, R w sqrt(2), which is set to ``speed``.
             self._omega = cfg.speed / (cfg.radius * math.sqrt(2.0))
             first = np.array([cx, cy, h])
+        elif cfg.kind in ("line", "vertical"):
+            # A back-and-forth along x (line) or z (vertical): offset R sin(th), so the speed
+            # R w peaks at the centre, where a line's passes are timed (th = k pi), and is ``speed``.
+            self._omega = cfg.speed / cfg.radius
+            first = np.array([cx, cy, h])
         elif cfg.kind == "hover":
             self._omega = 0.0
             first = np.array([cx, cy, h])
@@ -136,6 +141,21 @@ class Trajectory:
     @property
     def pattern_window(self) -> tuple[float, float]:
         return self._segments["pattern"]
+
+    def phase_times(self, phase: float) -> np.ndarray:
+        """Flight times in the pattern at which the phase theta is a multiple of ``phase`` (0 excluded):
+        a line's centre crossings for ``phase`` = pi. Found on the phase at 1 ms resolution, then refined
+        linearly, so ramps are honoured."""
+        t0, t1 = self.pattern_window
+        if self._omega == 0.0 or t1 <= t0:
+            return np.zeros(0)
+        t = np.arange(t0, t1, 1e-3)
+        theta, _, _ = self._phase(t, t0, t1)
+        k = np.floor(np.asarray(theta) / phase + 1e-12)
+        idx = np.flatnonzero(np.diff(k) > 0)
+        th = np.asarray(theta)
+        frac = ((k[idx + 1] * phase) - th[idx]) / np.maximum(th[idx + 1] - th[idx], 1e-15)
+        return t[idx] + frac * (t[idx + 1] - t[idx])
 
     @property
     def final_position(self) -> np.ndarray:
@@ -208,6 +228,13 @@ class Trajectory:
         r = self._radius
         c = np.cos(theta)
         s = np.sin(theta)
+        if self.kind in ("line", "vertical"):
+            k = 0 if self.kind == "line" else 2
+            th_d2 = th_d * th_d
+            p[:, k] += r * s
+            v[:, k] += r * c * th_d
+            a[:, k] += -r * s * th_d2 + r * c * th_dd
+            return
         if self.kind == "circle":
             ox, oy = r * (c - 1.0), r * s
             d1x, d1y = -r * s, r * c
@@ -237,6 +264,10 @@ class Trajectory:
             return np.array([r * (math.cos(theta) - 1.0), r * math.sin(theta), 0.0])
         if self.kind == "figure8":
             return np.array([r * math.sin(theta), 0.5 * r * math.sin(2.0 * theta), 0.0])
+        if self.kind == "line":
+            return np.array([r * math.sin(theta), 0.0, 0.0])
+        if self.kind == "vertical":
+            return np.array([0.0, 0.0, r * math.sin(theta)])
         return np.zeros(3)
 
 

@@ -92,6 +92,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": FLIES,
         "test_bench_rejects_bad_arguments": FAST,
     },
+    "test_bench_learning.py": {
+        "*": FAST,
+        "test_quick_bench_flies_every_row_through_the_real_path": BOTH,
+    },
     "test_bench_robustness.py": {
         "*": FLIES,
         "test_an_exact_tie_is_the_lowest_for_each_and_bold_for_each": FAST,
@@ -300,6 +304,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_online_flight.py": FLIES,
     "test_online_gate.py": {
         "*": SPAWNS,
+        "test_a_lowered_floor_learns_a_surface_transit_the_default_skips": FAST,
         "test_a_window_never_spans_a_model_change": FAST,
         "test_beside_the_fast_layer_a_gain_of_a_few_mm_per_s2_is_noise": FAST,
         "test_beside_the_fast_layer_the_gate_judges_only_what_varies_and_asks_for_a_margin": FAST,

@@ -84,6 +84,16 @@ def test_recorder_skips_ground_and_non_mpc_ticks_and_breaks_the_run() -> None:
     assert len(windows) == 1 and windows[0].t0 == pytest.approx(0.3)
 
 
+def test_a_lowered_floor_learns_a_surface_transit_the_default_skips() -> None:
+    # 6 cm over the floor: ground effect, which a flight meant to learn it records (online.min_height).
+    default = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
+    lowered = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0, min_height=0.02)
+    ticks = [tick(k / RATE, z=0.06) for k in range(120)]
+    assert [w for k in ticks if (w := default.add(k)) is not None] == []
+    assert len([w for k in ticks if (w := lowered.add(k)) is not None]) == 1
+    assert lowered.add(tick(0.5, z=0.015)) is None  # under the lowered floor: still not learned from
+
+
 def test_a_window_never_spans_a_model_change() -> None:
     rec = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
     windows = []

@@ -186,3 +186,33 @@ def test_default_config_builds():
     assert traj.duration > cfg.trajectory.duration
     s = traj.sample(np.array([traj.pattern_window[0] + 5.0]))
     assert np.linalg.norm(s.v) == pytest.approx(cfg.trajectory.speed)
+
+
+@pytest.mark.parametrize("kind, axis", [("line", 0), ("vertical", 2)])
+def test_line_and_vertical_oscillate_along_their_axis_at_the_set_peak_speed(kind, axis):
+    cfg = tcfg(kind=kind, radius=0.4, speed=0.8, duration=12.0, ramp_duration=1.0)
+    traj = make_trajectory(cfg, START)
+    t0, t1 = traj.pattern_window
+    t = np.arange(t0, t1, 1e-3)
+    ref = traj.sample(t)
+    first = np.array([cfg.center[0], cfg.center[1], cfg.height])
+    others = [k for k in range(3) if k != axis]
+    assert np.allclose(ref.p[:, others], first[others]) and np.allclose(ref.v[:, others], 0.0)
+    assert np.max(np.abs(ref.p[:, axis] - first[axis])) == pytest.approx(0.4, abs=1e-4)
+    assert np.max(np.abs(ref.v[:, axis])) == pytest.approx(0.8, rel=1e-3)
+    # The analytic velocity and acceleration are the position's derivatives (ramps included).
+    assert np.allclose(np.gradient(ref.p[:, axis], t), ref.v[:, axis], atol=2e-3)
+    assert np.allclose(np.gradient(ref.v[:, axis], t), ref.a[:, axis], atol=2e-2)
+
+
+def test_phase_times_are_a_line_s_centre_crossings():
+    # Phase at the end: w (duration - ramp) = 10.5 pi, so 10 centre crossings.
+    cfg = tcfg(kind="line", radius=0.5, speed=1.0, duration=1.0 + 10.5 * np.pi * 0.5, ramp_duration=1.0)
+    traj = make_trajectory(cfg, START)
+    passes = traj.phase_times(np.pi)
+    assert len(passes) == 10
+    ref = traj.sample(passes)
+    assert np.allclose(ref.p[:, 0], cfg.center[0], atol=1e-6)  # on the centre
+    assert np.all(np.abs(ref.v[:, 0]) > 0.9)  # at (nearly) full speed, alternating direction
+    assert np.all(np.sign(ref.v[1:, 0]) == -np.sign(ref.v[:-1, 0]))
+    assert make_trajectory(tcfg(kind="hover"), START).phase_times(np.pi).size == 0

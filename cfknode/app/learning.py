@@ -35,9 +35,6 @@ from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.flight.learning.trainer_client import TrainerClient
 from cfknode.models.trainer_process import TrainerSettings
 
-# Pre-flight: torch import plus a warm-up round in a fresh interpreter (2-5 s here, more under load).
-READY_TIMEOUT_S = 120.0
-
 
 def check_online(cfg: Config) -> None:
     """Refuse configurations online learning cannot fly (one-line ``ConfigError``)."""
@@ -90,6 +87,7 @@ def learner_settings(
         monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
         if o.monitor else None,
         ground_z=ground_z,
+        min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
     )
 
@@ -124,10 +122,10 @@ def start_trainer(cfg: Config, wait: bool = True) -> Iterator[TrainerClient | No
     if not cfg.online.enabled:
         yield None
         return
-    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout)
+    client = TrainerClient(trainer_settings(cfg), cfg.online.trainer_timeout, start_timeout=cfg.online.trainer_start_timeout)
     client.start()
     try:
-        if wait and not client.wait_ready(READY_TIMEOUT_S):
+        if wait and not client.wait_ready(cfg.online.trainer_start_timeout):
             raise ConfigError(client.start_problem)
         yield client
     finally:

@@ -56,6 +56,8 @@ class OnlineConfig:
         doc="... and better by at least this acceleration over that rollout")
     trainer_timeout: float = setting(unit="s", low=0, high=600, open_low=True,
         doc="wall s without a result: the trainer is killed and restarted")
+    trainer_start_timeout: float = setting(unit="s", low=1, high=3600,
+        doc="wall s the trainer may take to come up (2-5 s unloaded) before the flight refuses to start")
     max_restarts: int = setting(low=0, high=100,
         doc="then online learning stops and the flight goes on with the last good model")
     start_time: float = setting(unit="s", low=0, high=3600,
@@ -75,6 +77,8 @@ class OnlineConfig:
         doc="lockstep flights' delay from a window's end to its model flying: cpu | fixed | wall")
     fixed_latency_s: float = setting(unit="s", low=0, high=60, doc="latency: fixed")
     latency_quantum_s: float = setting(unit="s", low=0, high=1, doc="latency: cpu")
+    min_height: float = setting(unit="m", low=0, high=2,
+        doc="ticks closer than this to the floor are not learned from (lower it to learn ground effect)")
     inject: FaultInjection
 
 

@@ -8,6 +8,7 @@ from typing import Any, Generator, Protocol
 
 
 from cfknode.flight.learning.monitor import MonitorSettings
+from cfknode.flight.learning.windows import MIN_HEIGHT
 from cfknode.flight.learning.gate import GateLimits, GateVerdict
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.models.modelfile import ModelFile
@@ -42,6 +43,7 @@ class LearnerSettings:
     queue_size: int  # knode.queue_size
     monitor: MonitorSettings | None = None  # drop a flying model the world changed under (None: never)
     ground_z: float | None = None  # the floor's height: ticks near it are not learned from (None: no floor)
+    min_height: float = MIN_HEIGHT  # m: "near" the floor, for ground_z (online.min_height)
     latency: LatencyPolicy = LatencyPolicy()  # lockstep only: the delay a model is applied with (online_latency.py)
 
 

@@ -13,7 +13,9 @@ import numpy as np
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
-MIN_HEIGHT = 0.1  # m above the ground: ground effect and contact are not the model's business
+# by default ground effect and contact are not the model's business; online.min_height lowers the floor for a flight
+# meant to learn ground effect.
+MIN_HEIGHT = 0.1  # m above the ground
 ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks were not
 # A window over which the fast layer's mass estimate moved more than this (relative) is the layer's transient,
 # not the model's error: a network trained on it holds part of the mass the layer is still learning, and the two
@@ -40,9 +42,10 @@ class WindowRecorder:
     """
 
     def __init__(
-        self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None
+        self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None,
+        min_height: float = MIN_HEIGHT,
     ) -> None:
-        """``ground_z``: the floor's height; ticks within ``MIN_HEIGHT`` of it are not recorded
+        """``ground_z``: the floor's height; ticks within ``min_height`` of it are not recorded
         (None: no floor rule, for a flight that starts in the air or a plant without ground)."""
         self.t_col = t_col
         self.start_time = start_time
@@ -58,6 +61,7 @@ class WindowRecorder:
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
         self._ground = ground_z
+        self._min_height = min_height
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
         self.unsettled = 0  # full windows not trained on: the fast layer's mass was still moving (SETTLING_SPAN)
@@ -77,7 +81,7 @@ class WindowRecorder:
             or getattr(tick, "saturated", False)
             or (layer is not None and layer.stepping)  # the layer is tracking a step
             or tick.t < self.start_time
-            or (self._ground is not None and est.p[2] <= self._ground + MIN_HEIGHT)
+            or (self._ground is not None and est.p[2] <= self._ground + self._min_height)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
         ):
             self._break()

@@ -20,7 +20,7 @@ from typing import Callable
 from cfknode.app.errors import UsageError
 
 HELP = ("benchmarks: 'paper' reproduces the paper's Table 1, 'timing' measures the real-time parts, "
-        "'online' flies the online-learning acceptance protocol")
+        "'online' flies the online-learning acceptance protocol, 'learning' the cells where learning should win")
 
 
 def _version() -> str:
@@ -161,6 +161,18 @@ def _run_robustness(args: argparse.Namespace) -> int:
     return run_robustness(args, _version())
 
 
+def _add_learning_arguments(p: argparse.ArgumentParser) -> None:
+    from cfknode.app.bench.learning import add_learning_arguments
+
+    add_learning_arguments(p)
+
+
+def _run_learning(args: argparse.Namespace) -> int:
+    from cfknode.app.bench.learning import run_learning
+
+    return run_learning(args, _version())
+
+
 BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "paper": ("reproduce the paper's Table 1 (and the oracle limit)", _add_paper_arguments, _run_paper),
     "timing": ("solver, tick, swap and training times: medians and p99 from one run", _add_timing_arguments,
@@ -170,6 +182,9 @@ BENCHES: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callabl
     "robustness": ("every controller on plants it was not tuned on: motor lag, thrust-to-weight, attitude response, "
                    "thrust map, mocap latency and noise, wind, gusts, mass steps, battery sag",
                    _add_robustness_arguments, _run_robustness),
+    "learning": ("where learning should win: fast loops, vertical manoeuvres, surface transit, a stacked pair, on the "
+                 "realistic plant; nominal MPC, MPC + layer, KNODE-MPC-Online with and without the layer",
+                 _add_learning_arguments, _run_learning),
 }
 
 

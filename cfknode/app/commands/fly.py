@@ -61,7 +61,7 @@ def add_hardware_arguments(p: argparse.ArgumentParser) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p)
     add_hardware_arguments(p)
-    p.add_argument("--traj", choices=["hover", "circle", "figure8"], help="trajectory kind")
+    p.add_argument("--traj", choices=["hover", "circle", "figure8", "line", "vertical"], help="trajectory kind")
     p.add_argument("--radius", type=float, help="pattern radius [m]")
     p.add_argument("--speed", type=float, help="pattern speed [m/s]")
     p.add_argument("--height", type=float, help="flight height [m]")
@@ -82,8 +82,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="online learning as the paper's code does it: the simulation waits for every model "
                         "(for reproduction only)")
     p.add_argument("--fleet", type=int, metavar="N", help="fly N simulated drones in one flight (docs/fleet.md)")
-    p.add_argument("--fleet-layout", dest="fleet_layout", choices=["ring", "stack"],
-                   help="fleet: evenly spaced on the circle (ring) or stacked heights (stack)")
+    p.add_argument("--fleet-layout", dest="fleet_layout", choices=["ring", "stack", "crossing"],
+                   help="fleet: evenly spaced on the circle (ring), stacked heights (stack), or one hovering over "
+                        "the other's line (crossing)")
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="fleet: local flies every drone in this process (default); ray makes each drone a Ray actor "
                         "on the node with its radio (docs/fleet-ray.md)")

@@ -14,7 +14,7 @@ import contextlib
 from typing import Any, Iterator, Sequence
 
 from cfknode.app.config import Config, ConfigError
-from cfknode.app.learning import READY_TIMEOUT_S, check_online, online_session, trainer_settings
+from cfknode.app.learning import check_online, online_session, trainer_settings
 from cfknode.flight.learning.learner import OnlineLearner
 from cfknode.flight.learning.shared_trainer import SharedTrainer, TrainerPort
 from cfknode.flight.model_slot import ModelSlot
@@ -29,10 +29,12 @@ def fleet_trainers(configs: Sequence[Config]) -> Iterator[list[TrainerPort | Non
         yield [None] * len(configs)
         return
     # The drones' configs differ only in their simulator and radio: one trainer settings for all.
-    shared = SharedTrainer(trainer_settings(configs[0]), configs[0].online.trainer_timeout, len(configs))
+    start_timeout = configs[0].online.trainer_start_timeout
+    shared = SharedTrainer(trainer_settings(configs[0]), configs[0].online.trainer_timeout, len(configs),
+                           start_timeout=start_timeout)
     try:
         shared.start()
-        if not shared.wait_ready(READY_TIMEOUT_S):
+        if not shared.wait_ready(start_timeout):
             raise ConfigError(shared.client.start_problem)
         yield list(shared.ports)
     finally:

@@ -11,8 +11,8 @@ from cfknode.kernel.setting import setting
 @dataclass(frozen=True)
 class FleetConfig:
     size: int = setting(unit="drones", low=0, high=16, doc="0 or 1 flies one drone")
-    layout: Literal["ring", "stack"] = setting(
-        doc="ring: evenly spaced around the circle; stack: same circle, heights stack_spacing apart")
+    layout: Literal["ring", "stack", "crossing"] = setting(
+        doc="ring: spaced around the circle; stack: heights stack_spacing apart; crossing: 2nd hovers over 1st's line")
     stack_spacing: float = setting(unit="m", low=0, high=5, open_low=True, doc="between stacked heights")
     ground_spacing: float = setting(unit="m", low=0, high=5, open_low=True,
         doc="between stacked drones' start positions")
