@@ -61,6 +61,16 @@ class AdaptationTuning:
         doc="time constant of the mean engage_slow_level is compared with")
     release_s: float = setting(unit="s", low=0, high=60,
         doc="an axis lets go again after this long with both under half their levels")
+    model_coefficients: bool = setting(
+        doc="with a KNODE model flying, adapt a per-axis weight on its residual and hand its constant to the layer")
+    coefficient_bounds: tuple[float, float] = setting(low=0, high=5,
+        doc="the model's per-axis weights are kept inside")
+    coefficient_memory_s: float = setting(unit="s", low=0, high=600, open_low=True,
+        doc="time constant of the weights' least-squares fit (older ticks are forgotten)")
+    coefficient_prior: float = setting(unit="m/s^2", low=0, high=10, open_low=True,
+        doc="a model residual varying by this much (RMS) weighs as much as the prior weight 1")
+    model_mean_s: float = setting(unit="s", low=0, high=600, open_low=True,
+        doc="time constant of the model's mean residual, which the layer takes (vertically: the thrust scale)")
 
 
 @dataclass(frozen=True)

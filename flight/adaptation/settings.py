@@ -45,6 +45,11 @@ class AdaptationSettings:
     engage_slow_s: float
     release_s: float
     step_max_s: float
+    model_coefficients: bool
+    coefficient_bounds: tuple[float, float]
+    coefficient_memory_s: float
+    coefficient_prior: float
+    model_mean_s: float
 
     @property
     def enabled(self) -> bool:
