@@ -55,9 +55,10 @@ def test_the_prediction_weights_the_variation_and_hands_the_vertical_mean_over()
     lin = ResidualLinearisation(np.tile(r, (3, 1)), np.ones((3, 3, 6)), np.ones((3, 3, 3)))
     acting = coeffs.linearisation(lin, np.array([0.1, 0.0, 0.05]), vertical_acts=True)
     assert np.allclose(acting.c[0], composite_prediction(r, a, m) + [0.1, 0.0, 0.05])
-    assert np.allclose(acting.jx[0, :, 0], a) and np.allclose(acting.ju[1, :, 2], a)
-    alone = coeffs.linearisation(lin, np.zeros(3), vertical_acts=False)  # the model's mean flies as its own
-    assert alone.c[0, 2] == pytest.approx(1.2 * 0.1 - 2.1)
+    assert np.allclose(acting.jx[0, :, 0], a) and np.allclose(acting.ju[1, :2, 2], a[:2])
+    assert acting.ju[1, 2, 2] == 0.0  # the thrust's effectiveness is the thrust scale's
+    alone = coeffs.linearisation(lin, np.zeros(3), vertical_acts=False)  # the model's mean and slope as its own
+    assert alone.c[0, 2] == pytest.approx(1.2 * 0.1 - 2.1) and alone.ju[1, 2, 2] == pytest.approx(1.2)
 
 
 class SpeedModel:

@@ -192,6 +192,8 @@ class LoopAdaptation:
         r = np.zeros(3)
         if model_residual is not None:  # stage 0 of the model's own linearisation (no extra network pass)
             r = model_residual.c[0] + model_residual.jx[0] @ x0 + model_residual.ju[0] @ u
+            if self.coefficients is not None:  # the thrust's effectiveness is the thrust scale's (composite.py)
+                r[2] -= model_residual.ju[0, 2, 2] * u[2]
         self._u, self._r = u, r
         self._thrust = thrust_cmd * self.vehicle.newton_per_cmd
         # The observer compares the vehicle with the thrust that acts, not the one just sent: without the motors'
@@ -217,7 +219,11 @@ class LoopAdaptation:
         inner = model.model if model is not None else None
         new_acc = u.copy()
         if inner is not None and x.shape[0]:
-            r = np.asarray(inner.evaluate(x, u), dtype=float)
+            if self.coefficients is not None:
+                c, jx, ju = inner.linearise(x, u)
+                r = self.coefficients.features(c, jx, ju, x, u)
+            else:
+                r = np.asarray(inner.evaluate(x, u), dtype=float)
             if r.shape == u.shape and np.all(np.isfinite(r)):
                 if self.coefficients is not None:
                     self.coefficients.restart(r)
