@@ -67,6 +67,16 @@ class AdaptationTuning:
         doc="largest acceleration the fast path adds per axis")
     accel_stale_s: float = setting(unit="s", low=0, high=1, open_low=True,
         doc="with no usable accelerometer sample this long the fast path is withdrawn (100 Hz log: 10 ms apart)")
+    model_coefficients: bool = setting(
+        doc="with a KNODE model flying, adapt a per-axis weight on its residual and hand its constant to the layer")
+    coefficient_bounds: tuple[float, float] = setting(low=0, high=5,
+        doc="the model's per-axis weights are kept inside")
+    coefficient_memory_s: float = setting(unit="s", low=0, high=600, open_low=True,
+        doc="time constant of the weights' least-squares fit (older ticks are forgotten)")
+    coefficient_prior: float = setting(unit="m/s^2", low=0, high=10, open_low=True,
+        doc="a model residual varying by this much (RMS) weighs as much as the prior weight 1")
+    model_mean_s: float = setting(unit="s", low=0, high=600, open_low=True,
+        doc="time constant of the model's mean residual, which the layer takes (vertically: the thrust scale)")
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,11 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_saturated_ticks_never_enter_training_windows": FAST,
         "test_the_ipopt_reference_flies_the_layer_with_the_box": FAST,
     },
+    "test_adaptation_composite.py": {
+        "*": (SLOW,),
+        "test_the_fit_finds_the_features_weight_beside_a_constant_and_keeps_the_prior_without_excitation": FAST,
+        "test_the_prediction_weights_the_variation_and_hands_the_vertical_mean_over": FAST,
+    },
     "test_adaptation_engage.py": {
         "*": FLIES,
         "test_a_mass_error_under_the_level_engages_within_seconds": FAST,

@@ -147,7 +147,8 @@ def _layer() -> FastAdaptation:
         step_bandwidth_hz=10.0, step_thrust_rate=0.0, step_hold_s=0.3, oracle_delay_s=0.0, output_bandwidth_hz=0.5,
         output_bandwidth_xy_hz=0.5, offset_deadband=0.0, engage_level=0.0, engage_slow_level=0.03,
         engage_slow_s=2.0, release_s=0.3, step_max_s=1.0, accel_cutoff_hz=5.0, accel_max_offset=2.0,
-        accel_stale_s=0.03)
+        accel_stale_s=0.03, model_coefficients=True, coefficient_bounds=(0.0, 1.5), coefficient_memory_s=4.0,
+        coefficient_prior=0.05, model_mean_s=1.0)
     return FastAdaptation(s, 400.0, G)
 
 

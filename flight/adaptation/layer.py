@@ -233,6 +233,21 @@ class FastAdaptation:
             self._out = bounded
         return omega
 
+    @property
+    def sigma(self) -> np.ndarray:
+        """The observer's estimate (m/s^2, before the output filter): what the flying prediction leaves."""
+        return self._sigma
+
+    def reexpress(self, d_sigma: np.ndarray) -> None:
+        """The flying prediction moved by -``d_sigma`` (the model's coefficients, composite.py): the observer
+        and the offset take it, so that prediction + layer continues. Bounded as the observer is."""
+        if self._obs is None or not any(d_sigma.tolist()):
+            return
+        m = self.s.max_offset
+        moved = np.clip(self._sigma + d_sigma, -m, m)
+        self._shift_observer(moved - self._sigma, self.omega)
+        self._sigma = moved
+
     def stalled(self, t: float) -> bool:
         """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The
         vehicle moved meanwhile, and integrating across the gap read that motion as a disturbance (+-6 m/s^2

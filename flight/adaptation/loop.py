@@ -22,6 +22,7 @@ from cfknode.kernel.vehicle import VehicleConfig
 from cfknode.flight.adaptation.accel_path import (
     AccelState, AccelTuning, accel_part, accel_step, saturated, world_residual,
 )
+from cfknode.flight.adaptation.composite import CoefficientSettings, ModelCoefficients
 from cfknode.flight.adaptation.estimate import AdaptationEstimate
 from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.settings import settings_from_controller
@@ -61,6 +62,10 @@ class LoopAdaptation:
         self._imu_t = -float("inf")  # the newest accelerometer sample used
         self._accel_tuning = accel_tuning(self.layer)  # None: the fast path is off
         self._accel: AccelState | None = None
+        # The model's per-axis coefficients (composite.py): built when a model flies, None without one.
+        self._coeff_settings = CoefficientSettings(tuning.coefficient_bounds, tuning.coefficient_memory_s,
+                                                   tuning.coefficient_prior, tuning.model_mean_s)
+        self.coefficients: ModelCoefficients | None = None
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -77,6 +82,8 @@ class LoopAdaptation:
         if self._have_command:
             self.layer.reset()
             self.lags.forget_velocity()
+            if self.coefficients is not None:
+                self.coefficients.reset()
         self._have_command = False
         self._accel = None
 
@@ -87,6 +94,7 @@ class LoopAdaptation:
             self.off_air()
             return self.layer.applied
         version = model.version if model is not None else 0
+        self._use_coefficients(model)
         if self._version is not None and version != self._version:
             self._rebase(model)
         self._version = version
@@ -98,19 +106,26 @@ class LoopAdaptation:
         x = np.concatenate((measured_position(est), est.v))
         bz = body_z(est.q)
         u_flown = self.flown_acc(bz)
+        coeffs = self.coefficients
+        predicted = self._r if coeffs is None else coeffs.prediction(self._r)
         if airborne:  # the lag bank learns from the same frames as the layer
             e = self.layer.estimate
             self.lags.observe(float(est.v[2]), float(bz[2]), self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
-                              float(self._r[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
+                              float(predicted[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
         else:
             self.lags.forget_velocity()
         acting = self.lags.acting_all()
         by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
         imu = self._imu_theta(now, est) if airborne else None
-        fast = self._accel_part(now, est, airborne)
+        fast = self._accel_part(now, est, airborne, predicted)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
                             accel_part=fast)
-        self.layer.update(now, est.v, x, u_flown, u_flown + self._r, self._sat, pose_fresh and airborne, extras)
+        self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)
+        if coeffs is not None and self.layer.s.enabled and not self.layer.estimate.frozen:
+            e = self.layer.estimate
+            shift = coeffs.tick(self._r, self.layer.sigma, self.layer.omega, self.layer.dt,
+                                learn=not (e.stepping or e.saturated))
+            self.layer.reexpress(shift)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
         self._count(now)
@@ -157,10 +172,11 @@ class LoopAdaptation:
             thrust = value
         return thrust
 
-    def _accel_part(self, now: float, est: Any, airborne: bool) -> np.ndarray | None:
+    def _accel_part(self, now: float, est: Any, airborne: bool, predicted: np.ndarray) -> np.ndarray | None:
         """The accelerometer fast path's part this tick (accel_path.py), None when it is off, on the ground, or
         without a usable sample for ``accel_stale_s``. A new sample's residual is its measured acceleration in
-        the world less the model's for the thrust acting when it was measured, along the measured attitude."""
+        the world less the model's for the thrust acting when it was measured, along the measured attitude, with
+        the residual the MPC predicts with (``predicted``)."""
         tuning = self._accel_tuning
         if tuning is None:
             return None
@@ -173,7 +189,7 @@ class LoopAdaptation:
             thrust = self._thrust_at(imu.t)
             if thrust is not None:
                 mass = self.vehicle.mass * self.layer.estimate.thrust_scale
-                model = (thrust / mass) * body_z(est.q) + self._r  # gravity cancels: world_residual takes g e_z
+                model = (thrust / mass) * body_z(est.q) + predicted  # gravity cancels: world_residual takes g e_z
                 model[2] -= self.vehicle.gravity
                 d = world_residual(est.q, imu.specific_force, self.vehicle.gravity, model)
                 self._accel = accel_step(self._accel, imu.t, d, tuning)
@@ -194,7 +210,10 @@ class LoopAdaptation:
         built for it."""
         if not self.layer.s.enabled:
             return model_residual
-        offset = self.layer.applied.offset
+        applied = self.layer.applied
+        offset = applied.offset
+        if model_residual is not None and self.coefficients is not None:
+            return self.coefficients.linearisation(model_residual, offset, vertical_acts=applied.acts[2])
         if model_residual is None:
             if not any(offset.tolist()):
                 return None
@@ -215,6 +234,8 @@ class LoopAdaptation:
         r = np.zeros(3)
         if model_residual is not None:  # stage 0 of the model's own linearisation (no extra network pass)
             r = model_residual.c[0] + model_residual.jx[0] @ x0 + model_residual.ju[0] @ u
+            if self.coefficients is not None:  # the thrust's effectiveness is the thrust scale's (composite.py)
+                r[2] -= model_residual.ju[0, 2, 2] * u[2]
         self._u, self._r = u, r
         self._thrust = thrust_cmd * self.vehicle.newton_per_cmd
         # The observer compares the vehicle with the thrust that acts, not the one just sent: without the motors'
@@ -224,14 +245,34 @@ class LoopAdaptation:
         self.saturated_ticks += int(shaped.thrust_saturated or shaped.tilt_saturated)
         self._have_command = True
 
+    def _use_coefficients(self, model: Any) -> None:
+        """Coefficients while a model flies (and ``model_coefficients`` is on); none without one, so a flight
+        without a model is the layer's alone."""
+        flying = model is not None and model.model is not None and self.layer.s.model_coefficients
+        if flying and self.coefficients is None:
+            self.coefficients = ModelCoefficients(self._coeff_settings, self.ctrl.rate_hz)
+        elif not flying:
+            self.coefficients = None
+
     def _rebase(self, model: Any) -> None:
+        """A swap: the new model's prediction on the recent ticks, the coefficients restarted on it (a = 1,
+        its mean there), and the layer's offset re-based so that model + layer is continuous."""
         x, u, _ = self.layer.recent()
         inner = model.model if model is not None else None
         new_acc = u.copy()
         if inner is not None and x.shape[0]:
-            r = np.asarray(inner.evaluate(x, u), dtype=float)
+            if self.coefficients is not None:
+                c, jx, ju = inner.linearise(x, u)
+                r = self.coefficients.features(c, jx, ju, x, u)
+            else:
+                r = np.asarray(inner.evaluate(x, u), dtype=float)
             if r.shape == u.shape and np.all(np.isfinite(r)):
+                if self.coefficients is not None:
+                    self.coefficients.restart(r)
+                    r = self.coefficients.predictions(r)
                 new_acc = u + r
+        elif self.coefficients is not None:
+            self.coefficients.reset()
         self.layer.rebase(new_acc)
 
     def log(self) -> dict[str, Any]:
@@ -248,7 +289,15 @@ class LoopAdaptation:
                 "adaptation_saturated_ticks": self.saturated_ticks, "adaptation_resets": self.layer.resets,
                 "adaptation_rebases": self.layer.rebases,
                 "adaptation_acts_end": list(self.layer.applied.acts),
-                "adaptation_state": self.state_summary()}
+                "adaptation_state": self.state_summary(), **self._coefficient_summary()}
+
+    def _coefficient_summary(self) -> dict[str, Any]:
+        """The model's coefficients and mean at the end, when a model flew with them."""
+        c = self.coefficients
+        if c is None:
+            return {}
+        return {"adaptation_model_coefficients_end": [round(float(v), 4) for v in c.a],
+                "adaptation_model_mean_end": [round(float(v), 4) for v in c.mean]}
 
     def state_summary(self) -> dict[str, Any]:
         """The layer's state over the flight, one summary field: whether it was tracking a step at the end, for

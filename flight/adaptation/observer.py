@@ -1,7 +1,7 @@
 """The fast layer's estimator as pure functions: observer, output filter, and the moves between its estimates.
 
-Each takes arrays and returns new ones (no state), so the same law can later adapt other coefficients, such
-as the weights of a learned model's features, beside the constant offset it adapts now.
+Each takes arrays and returns new ones (no state). The weights of a learned model's residual beside the
+constant offset are fitted in ``composite.py``.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ thrust cone's bound) -> ``residual`` (the MPC's residual with the layer's part a
 the Mellinger layer flies with) -> ``after_command`` (what was flown). ``LoopAdaptation`` (the observer,
 ``loop.py``) and ``OracleAdaptation`` (the true mass, ``oracle.py``) fill it; ``NoAdaptation`` flies the
 model alone through the same path, for an embedder who wants the layer's interface without its estimate.
-A layer that adapts the weights of a learned model's features would fill the same slot: its part of the
-residual enters through ``residual``.
+With a model flying, ``LoopAdaptation`` also weights the model's residual per axis (``composite.py``): that
+part enters through ``residual`` too, as the model's linearisation scaled per row.
 """
 
 from __future__ import annotations

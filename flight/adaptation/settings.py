@@ -48,6 +48,11 @@ class AdaptationSettings:
     accel_cutoff_hz: float
     accel_max_offset: float
     accel_stale_s: float
+    model_coefficients: bool
+    coefficient_bounds: tuple[float, float]
+    coefficient_memory_s: float
+    coefficient_prior: float
+    model_mean_s: float
 
     @property
     def enabled(self) -> bool:
