@@ -105,10 +105,13 @@ class _Gating:
     """A candidate going through the gate, one slice per tick gap."""
 
     held: _Held
-    candidate: ResidualQueue | None  # set by the first slice
-    steps: Generator[None, None, GateVerdict]
+    candidate: ResidualQueue | None  # set when the gate is done
+    steps: Generator[None, None, tuple[GateVerdict, ResidualQueue]]
     work_s: float  # wall time of the slices so far (fold and filtering included)
     max_slice_s: float
+    job: int = 0  # the trainer judges it (``install.gate_job``): the job's id (0: the slices run here)
+    calls: int = 0  # tick gaps since the job was sent
+    verdict: tuple[GateVerdict, int] | None = None  # the job's answer: the verdict and its slice count
 
 
 @dataclass
