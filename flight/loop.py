@@ -69,6 +69,7 @@ class FlightRecord:
     fallback_reasons: dict[str, int] = field(default_factory=dict)  # MPC status -> ticks
     no_state_ticks: int = 0
     wall_time: float = 0.0
+    loop_cpu_s: float = 0.0  # CPU time of the loop's thread over the flight (wall_time less it: waits, preemption)
     events: list[str] = field(default_factory=list)
     adaptation: dict[str, Any] = field(default_factory=dict)  # fast adaptation's end state, for the summary
 
@@ -90,7 +91,7 @@ class FlightRecord:
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
             solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
-            wall_time=self.wall_time, events=self.events, adaptation=self.adaptation,
+            wall_time=self.wall_time, loop_cpu_s=self.loop_cpu_s, events=self.events, adaptation=self.adaptation,
         )
 
     def ensure_room(self) -> None:
@@ -177,6 +178,7 @@ class _Loop:
         self.acc_prev = np.zeros(3)
         self.last_pose_t = -np.inf
         self.wall_start = time.perf_counter()
+        self.cpu_start = time.thread_time()
         self.k = 0
         self.log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
         self.log.report_to(self.detached)
@@ -385,6 +387,7 @@ class _Loop:
     def finish(self) -> FlightRecord:
         rec = self.rec
         rec.wall_time = time.perf_counter() - self.wall_start
+        rec.loop_cpu_s = time.thread_time() - self.cpu_start
         rec.events = list(self.sup.events)
         if self.controller.adaptation is not None:
             rec.adaptation = self.controller.adaptation.summary()

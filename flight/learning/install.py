@@ -90,6 +90,7 @@ class TrainerJudging:
             return
         self._job += 1
         g.job, self._job_out = self._job, True
+        self.stats.gate_jobs += 1
         held = g.held
         self.client.submit_job(Job(g.job, gate_job, (held.outcome.model, current, held.window, fresh, self._rules)))
 
@@ -99,6 +100,7 @@ class TrainerJudging:
         g.calls += 1
         if g.verdict is None and self.s.lockstep:
             self._await_job(t)
+            start = self._wall()  # the wait is pacing (simulated wall time), not the loop's work
         if self._gating is not g or g.verdict is None:
             return  # still on its way, or lost with the trainer (rejected there)
         verdict, calls = g.verdict
@@ -120,6 +122,7 @@ class TrainerJudging:
         self.stats.pace_wait_s += self._wall() - waited
 
     def _on_job(self, event: JobOutcome, t: float) -> None:
+        self.stats.trainer_cpu_s += event.cpu_s
         if event.id == self._job:
             self._job_out = False
         g = self._gating

@@ -244,6 +244,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
                 else self._wall() - out.sent_wall
             self.stats.latency_s.append(latency)
             self.stats.train_wall_s.append(event.wall_s)
+            self.stats.trainer_cpu_s += event.cpu_s
             self._log_training(t, event, latency)
             if event.model is None:
                 self.stats.rounds_failed += 1

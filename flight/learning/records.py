@@ -149,6 +149,8 @@ class OnlineStats:
     pace_wait_s: float = 0.0  # wall time spent holding the simulation back for honest latency
     max_slice_s: float = 0.0  # longest gate/swap slice between two ticks
     late_ticks: int = 0  # ticks whose compute plus the learner's install work before them exceeded the period
+    trainer_cpu_s: float = 0.0  # CPU time of the trainer's rounds and jobs (its warm-up before take-off aside)
+    gate_jobs: int = 0  # candidates the trainer judged (the rest were judged in the loop's tick gaps)
     swap_s: list[float] = field(default_factory=list)
     install_s: list[float] = field(default_factory=list)
     train_wall_s: list[float] = field(default_factory=list)
