@@ -161,6 +161,7 @@ class _Tick:
     status: str = ""
     compute: float = 0.0
     missed: bool = False
+    adapted: bool = False  # the control law stepped its fast layer: /adaptation is logged after the send
 
 
 class _Loop:
@@ -315,8 +316,7 @@ class _Loop:
                         plan_ref = self.traj.sample(controller.preview_times(now + delay))
                 command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
                                           phase=self.sup.state.value)
-                if controller.adaptation is not None:
-                    self.log.write("/adaptation", now, controller.adaptation.log())
+                tick.adapted = controller.adaptation is not None
             except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
                 self.controller_failed = True
                 self.fault("the controller", exc, ERROR_LAND)
@@ -364,6 +364,13 @@ class _Loop:
                 sup.state.value, self.logs_imu))
         except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
             self.fault("the flight log (tick messages)", exc, ERROR_RECORD)
+        if tick.adapted:
+            # Here, after the send, not in the tick's compute: bookkeeping never delays a setpoint, and the
+            # layer's state is this tick's until its next step.
+            try:
+                self.log.write("/adaptation", now, self.controller.adaptation.log())  # type: ignore[union-attr]
+            except Exception as exc:  # noqa: BLE001 - building the message, not writing it
+                self.fault("the fast layer's log message", exc, ERROR_RECORD)
         self.observe(tick)
 
     def observe(self, tick: _Tick) -> None:
