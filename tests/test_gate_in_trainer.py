@@ -151,7 +151,7 @@ def _gate_inputs() -> tuple[Any, ...]:
 
 def test_a_niced_single_threaded_trainer_judges_as_the_loop_would() -> None:
     settings = replace(trainer_settings(load_config(overrides={"online.enabled": True})), nice=3)
-    client = TrainerClient(settings, timeout=120.0)
+    client = TrainerClient(settings, timeout=120.0, start_timeout=300.0)  # torch on a loaded machine
     client.start()
     try:
         assert client.wait_ready(300.0), client.start_problem
