@@ -69,6 +69,7 @@ class FlightRecord:
     fallback_reasons: dict[str, int] = field(default_factory=dict)  # MPC status -> ticks
     no_state_ticks: int = 0
     wall_time: float = 0.0
+    loop_cpu_s: float = 0.0  # CPU time of the loop's thread over the flight (wall_time less it: waits, preemption)
     events: list[str] = field(default_factory=list)
     adaptation: dict[str, Any] = field(default_factory=dict)  # fast adaptation's end state, for the summary
 
@@ -90,7 +91,7 @@ class FlightRecord:
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
             solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
-            wall_time=self.wall_time, events=self.events, adaptation=self.adaptation,
+            wall_time=self.wall_time, loop_cpu_s=self.loop_cpu_s, events=self.events, adaptation=self.adaptation,
         )
 
     def ensure_room(self) -> None:
@@ -160,6 +161,7 @@ class _Tick:
     status: str = ""
     compute: float = 0.0
     missed: bool = False
+    adapted: bool = False  # the control law stepped its fast layer: /adaptation is logged after the send
 
 
 class _Loop:
@@ -177,6 +179,7 @@ class _Loop:
         self.acc_prev = np.zeros(3)
         self.last_pose_t = -np.inf
         self.wall_start = time.perf_counter()
+        self.cpu_start = time.thread_time()
         self.k = 0
         self.log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
         self.log.report_to(self.detached)
@@ -313,8 +316,7 @@ class _Loop:
                         plan_ref = self.traj.sample(controller.preview_times(now + delay))
                 command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
                                           phase=self.sup.state.value)
-                if controller.adaptation is not None:
-                    self.log.write("/adaptation", now, controller.adaptation.log())
+                tick.adapted = controller.adaptation is not None
             except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
                 self.controller_failed = True
                 self.fault("the controller", exc, ERROR_LAND)
@@ -362,6 +364,13 @@ class _Loop:
                 sup.state.value, self.logs_imu))
         except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
             self.fault("the flight log (tick messages)", exc, ERROR_RECORD)
+        if tick.adapted:
+            # Here, after the send, not in the tick's compute: bookkeeping never delays a setpoint, and the
+            # layer's state is this tick's until its next step.
+            try:
+                self.log.write("/adaptation", now, self.controller.adaptation.log())  # type: ignore[union-attr]
+            except Exception as exc:  # noqa: BLE001 - building the message, not writing it
+                self.fault("the fast layer's log message", exc, ERROR_RECORD)
         self.observe(tick)
 
     def observe(self, tick: _Tick) -> None:
@@ -385,6 +394,7 @@ class _Loop:
     def finish(self) -> FlightRecord:
         rec = self.rec
         rec.wall_time = time.perf_counter() - self.wall_start
+        rec.loop_cpu_s = time.thread_time() - self.cpu_start
         rec.events = list(self.sup.events)
         if self.controller.adaptation is not None:
             rec.adaptation = self.controller.adaptation.summary()

@@ -12,7 +12,9 @@ Protocol (every message a picklable frozen dataclass of numpy arrays and plain v
 - parent -> child: ``TrainRequest`` (at most one outstanding; the parent enforces it), or
   ``None`` to stop;
 - child -> parent: one ``TrainOutcome`` per request, with the new queue as a numpy
-  ``ModelFile`` (or ``error`` set when the round failed in an ordinary way, e.g. too little data).
+  ``ModelFile`` (or ``error`` set when the round failed in an ordinary way, e.g. too little data);
+- parent -> child, between rounds: a ``Job`` (numpy work, e.g. the validation gate), answered by one
+  ``JobOutcome``: the trainer's core does it instead of the flight loop's tick gaps.
 
 A round: the window (and optionally a few recent ones, each its own segment) becomes a
 dataset with ``make_dataset``; a network is pushed onto the queue the window was flown with
@@ -28,13 +30,14 @@ nan = the trained network's output layer becomes NaN.
 
 from __future__ import annotations
 
+import importlib
 import math
 import os
 import signal
 import time
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -82,6 +85,12 @@ class TrainerSettings:
     training: TrainingConfig  # with the online epochs, lr and weight decay
     warm_start: bool
     inject: FaultInjection
+    # Added to the trainer's niceness (``online.trainer_nice``) on a wall clock: the flight loop shares the
+    # cores with it, and a training round that holds a core the loop wakes up on makes the loop miss its slot.
+    nice: int = 0
+    # Modules the child imports before it reports ready, by name: the first job would otherwise pay them
+    # (the gate's scipy.signal took seconds on a loaded machine), counted against its hang deadline.
+    preload: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -95,9 +104,32 @@ class TrainRequest:
 
 
 @dataclass(frozen=True)
+class Job:
+    """Numpy work the flight side hands the trainer process instead of doing it between its own ticks.
+
+    ``fn`` is named by reference (a module-level function), so this module needs no import of it; the
+    child imports its module on first use (``TrainerSettings.preload`` does that before take-off).
+    The learner sends one only while the trainer is idle: no round waits behind it."""
+
+    id: int
+    fn: Callable[..., Any]
+    args: tuple[Any, ...]
+
+
+@dataclass(frozen=True)
+class JobOutcome:
+    id: int
+    value: Any  # ``fn``'s return value (None when it raised)
+    error: str = ""  # non-empty: ``fn`` raised this, in one line
+    cpu_s: float = 0.0  # CPU time of the job in the child
+
+
+@dataclass(frozen=True)
 class TrainerReady:
     pid: int
     warmup_s: float  # wall time of the warm-up round
+    nice: int = 0  # the trainer's niceness (the parent's plus ``TrainerSettings.nice``)
+    threads: int = 1  # torch's intra-op threads
 
 
 @dataclass(frozen=True)
@@ -127,16 +159,24 @@ def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = Fal
     for sig in IGNORED_SIGNALS:  # first, before the slow torch import (see IGNORED_SIGNALS)
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, IGNORED_SIGNALS)  # blocked by the parent while spawning
+    if settings.nice > 0:
+        # Before the torch import: it and the warm-up are the child's heaviest work while the flight
+        # starts up. Only ever lower: raising a priority needs privileges and is not the trainer's to take.
+        os.nice(settings.nice)
     import torch
 
     # One thread: two on these shared 2-core machines slowed small batches 4-80x
     # (docs/solver-timings.md#training),
-    # and the other core is the flight loop's.
+    # and the other core is the flight loop's. No inter-op pool either: its threads would be more
+    # runnable threads beside the loop's.
     torch.set_num_threads(1)
+    torch.set_num_interop_threads(1)
     start = time.perf_counter()
     # A few epochs pay the first-call costs (autograd, allocator); more would only delay take-off.
     _train_round(_warmup_request(), replace(settings, training=replace(settings.training, epochs=3)))
-    conn.send(TrainerReady(os.getpid(), time.perf_counter() - start))
+    for name in settings.preload:
+        importlib.import_module(name)
+    conn.send(TrainerReady(os.getpid(), time.perf_counter() - start, os.nice(0), torch.get_num_threads()))
     while True:
         try:
             request = conn.recv()
@@ -145,9 +185,23 @@ def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = Fal
         if request is None:
             return
         tag, request = request if tagged else (None, request)
-        _maybe_fail_before(request.round, settings.inject)
-        outcome = _train_round(request, settings)
+        if isinstance(request, Job):
+            outcome: TrainOutcome | JobOutcome = run_job(request)
+        else:
+            _maybe_fail_before(request.round, settings.inject)
+            outcome = _train_round(request, settings)
         conn.send((tag, outcome) if tagged else outcome)
+
+
+def run_job(job: Job) -> JobOutcome:
+    """Run one job; an exception comes back as the outcome's ``error``, as a failed round does."""
+    cpu0 = time.process_time()
+    try:
+        value = job.fn(*job.args)
+    except Exception as exc:  # noqa: BLE001 - the flight side decides what a failed job means
+        return JobOutcome(job.id, None, f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                          time.process_time() - cpu0)
+    return JobOutcome(job.id, value, "", time.process_time() - cpu0)
 
 
 def _maybe_fail_before(round_: int, inject: FaultInjection) -> None:
@@ -276,6 +330,8 @@ def _warmup_request() -> TrainRequest:
 
 __all__ = [
     "CRASH_EXIT_CODE",
+    "Job",
+    "JobOutcome",
     "TrainOutcome",
     "TrainRequest",
     "TrainerReady",

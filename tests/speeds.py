@@ -228,6 +228,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_unique_file_names_never_overwrite": FAST,
         "test_write_rejects_bad_input": FAST,
     },
+    "test_gate_in_trainer.py": {
+        "*": FAST,
+        "test_a_niced_single_threaded_trainer_judges_as_the_loop_would": SPAWNS,
+    },
     "test_gate_tilt_climb.py": FAST,
     "test_gate_transfer.py": FAST,
     "test_hardware_backend.py": {

@@ -118,6 +118,22 @@ def test_a_raising_log_write_does_not_end_the_flight(tmp_path, monkeypatch):
     _assert_handed_back(res)
 
 
+def test_a_raising_fast_layer_log_message_is_recorded_and_the_controller_flies_on(tmp_path, monkeypatch):
+    # The loop builds /adaptation after the tick's setpoint is sent, outside the control law: its failure is
+    # a record's, not the controller's, and no tick falls back to the geometric controller for it.
+    from cfknode.flight.adaptation import LoopAdaptation
+
+    monkeypatch.setattr(LoopAdaptation, "log", _raise_after(int(RAISE_AT_S * 400), LoopAdaptation.log))
+    res = run_flight(_cfg(tmp_path))
+    out = res.outcome
+    assert out.state.value == "LANDED" and out.cause == "complete"
+    assert len(out.errors) == 1 and "the fast layer's log message" in out.errors[0]
+    assert "error" not in res.summary.extra["fallback_reasons"]
+    log = read_log(res.summary.log_path)
+    assert log.times("/adaptation").max() < RAISE_AT_S + 0.1 < log.times("/state").max()  # the others go on
+    _assert_handed_back(res)
+
+
 def test_a_raising_estimator_stops_the_motors(tmp_path, monkeypatch):
     monkeypatch.setattr(VelocityEstimator, "predict",
                         _raise_after(int(RAISE_AT_S * 400), VelocityEstimator.predict, ValueError))

@@ -56,11 +56,24 @@ def online_model_slot(cfg: Config, slot: ModelSlot | None) -> ModelSlot | None:
 
 
 def trainer_settings(cfg: Config) -> TrainerSettings:
-    """Each round: the ``training`` section with the online epochs, learning rate, weight decay and method."""
+    """Each round: the ``training`` section with the online epochs, learning rate, weight decay and method.
+
+    On a wall clock (hardware, ``--realtime``) the trainer runs ``online.trainer_nice`` below the flight:
+    there the loop's deadlines are real and a round may wait. In lockstep the loop itself waits for the
+    trainer whenever its result is due, so a lowered trainer would only make the flight slower.
+    """
     o = cfg.online
     training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay,
                                    method=o.method)
-    return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject)
+    nice = o.trainer_nice if wall_clock(cfg) else 0
+    # The trainer also judges the candidates (flight/learning/install.py): the gate's imports before take-off.
+    return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject, nice,
+                           preload=("cfknode.flight.learning.install",))
+
+
+def wall_clock(cfg: Config) -> bool:
+    """Whether the flight runs against the wall clock: on hardware, or simulated with ``--realtime``."""
+    return cfg.backend != "sim" or cfg.sim.realtime
 
 
 def learner_settings(

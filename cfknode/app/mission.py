@@ -274,6 +274,8 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
                     "solver": cfg.controller.solver if mpc is not None else "none",
                     "backend": cfg.backend,
                     "lockstep": bool(sess.clock.lockstep),
+                    # The loop thread's CPU time: with trainer_cpu_s (online), who used the cores.
+                    "loop_cpu_s": round(record.loop_cpu_s, 3),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
                     **_imu_fields(sess.radio, parts.imu is not None),
                     **record.adaptation,

@@ -60,6 +60,8 @@ class OnlineConfig:
         doc="wall s the trainer may take to come up (2-5 s unloaded) before the flight refuses to start")
     max_restarts: int = setting(low=0, high=100,
         doc="then online learning stops and the flight goes on with the last good model")
+    trainer_nice: int = setting(low=0, high=19,
+        doc="on a wall clock the trainer runs this much nicer than the flight (its deadlines come first)")
     start_time: float = setting(unit="s", low=0, high=3600,
         doc="collect from this flight time on (0: from take-off; no knowledge of disturbance times)")
     rollback_ticks: int = setting(unit="ticks", low=1, high=100000,

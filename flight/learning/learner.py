@@ -36,19 +36,19 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from typing import Any, Callable, Generator
+from typing import Any, Callable
 
 import numpy as np
 
 from cfknode.flight.learning.monitor import ModelMonitor, MonitorVerdict
 from cfknode.flight.model_slot import ModelSlot
-from cfknode.flight.learning.gate import GateVerdict, gate_pairs, gate_steps
+from cfknode.flight.learning.gate import GateVerdict
+from cfknode.flight.learning.install import GateRules, TrainerJudging, install_steps
 from cfknode.flight.learning.latency import applied_latency
 from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
-from cfknode.models.residual_np import ResidualQueue
-from cfknode.models.trainer_process import TrainerReady, TrainOutcome, TrainRequest, Window
+from cfknode.models.trainer_process import JobOutcome, TrainerReady, TrainOutcome, TrainRequest, Window
 
 
 from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the app and tests use them)
@@ -68,7 +68,7 @@ from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the ap
 from cfknode.flight.learning.reports import LearnerReports, SwapTimes
 
 
-class OnlineLearner(LearnerReports):
+class OnlineLearner(LearnerReports, TrainerJudging):
     """The flight side of online learning: a ``TickObserver`` (see the module docstring)."""
 
     def __init__(
@@ -103,6 +103,7 @@ class OnlineLearner(LearnerReports):
         self.failed = False  # restarts exhausted: learning stopped, flight goes on
         self.ending = False  # the supervisor is landing or has ended the flight: no trainer restarts
         self._install_work_s = 0.0  # wall time of the last on_tick when it folded, gated or swapped a model
+        self._rules = GateRules(settings.gate, settings.filter_hz, settings.limits)
         self.stats = OnlineStats()
         self.rounds: list[RoundRecord] = []
         self.swaps: list[SwapEvent] = []
@@ -205,7 +206,11 @@ class OnlineLearner(LearnerReports):
     def _maybe_send(self, t: float) -> None:
         if self._arrived is not None:
             return  # the trainer is idle, but in flight time its result is still on the way
-        if self.client.state != "idle" or self._held is not None or self._gating is not None or self._pending is None:
+        if self._held is not None or self._gating is not None or self._pending is None:
+            return
+        if self._job_out and self.s.lockstep:
+            self._await_job(t)  # a discarded candidate's verdict: the window goes out on the tick it would have
+        if self.client.state != "idle":
             return
         window, self._pending = self._pending, None
         if window.version != self._flying.version:
@@ -239,6 +244,7 @@ class OnlineLearner(LearnerReports):
                 else self._wall() - out.sent_wall
             self.stats.latency_s.append(latency)
             self.stats.train_wall_s.append(event.wall_s)
+            self.stats.trainer_cpu_s += event.cpu_s
             self._log_training(t, event, latency)
             if event.model is None:
                 self.stats.rounds_failed += 1
@@ -250,6 +256,8 @@ class OnlineLearner(LearnerReports):
             # On a wall clock the round trip has already elapsed in flight time; in lockstep it is added.
             apply_at = out.sent_t + latency if self.s.lockstep and not self.s.paper_lockstep else t
             self._held = _Held(event, out.request.window, t, out.sent_t, latency, apply_at)
+        elif isinstance(event, JobOutcome):
+            self._on_job(event, t)
         elif isinstance(event, TrainerFault):
             self._on_fault(event, t)
         elif isinstance(event, TrainerReady):
@@ -258,6 +266,7 @@ class OnlineLearner(LearnerReports):
     def _on_fault(self, fault: TrainerFault, t: float) -> None:
         out, self._out = self._out, None
         self._arrived = None
+        self._lose_job(t, fault.kind)
         version = out.request.version if out is not None else self._flying.version
         if fault.kind == "hang":
             self.stats.hangs += 1
@@ -307,38 +316,28 @@ class OnlineLearner(LearnerReports):
             fresh = _tail(out, held.window)
         else:
             fresh = self.recorder.fresh(out.window_t1)
-        g = _Gating(held, None, self._install_steps(held, fresh), 0.0, 0.0)
+        assert out.model is not None
+        current = self._flying.model
+        g = _Gating(held, None, install_steps(out.model, current, held.window, fresh, self._rules), 0.0, 0.0)
+        if not self.s.paper_lockstep:
+            self._send_gate_job(g, current, fresh)
         g.work_s = g.max_slice_s = self._wall() - start
         self._gating = g
-
-    def _install_steps(self, held: _Held, fresh: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Generator[None, None, GateVerdict]:
-        """Fold the candidate, filter the held-out data, then the gate: each a slice of its own."""
-        g = self._gating
-        out = held.outcome
-        assert out.model is not None
-        candidate = ResidualQueue.from_model_file(out.model)
-        if g is not None:
-            g.candidate = candidate
-        yield
-        if not self.s.gate:  # gate off is the paper: every trained model flies
-            return GateVerdict(True, "", math.nan, math.nan, math.nan, math.nan, 0)
-        ft, fx, fu = fresh
-        pairs = gate_pairs(ft, fx, fu, self.s.filter_hz)
-        yield
-        return (yield from gate_steps(out.model, candidate, self._flying.model, pairs,
-                                      np.concatenate((held.window.x, fx)), np.concatenate((held.window.u, fu)),
-                                      self.s.limits))
 
     def _step_gate(self, t: float) -> None:
         """One slice of the gate per tick gap; the swap itself (a reference write) follows the last slice."""
         g = self._gating
         assert g is not None
         start = self._wall()
+        if g.job:
+            self._step_judged(t, g, start)
+            return
         try:
             next(g.steps)
         except StopIteration as done:
             self._gating = None
-            self._finish_gate(t, g, done.value, start)
+            verdict, g.candidate = done.value
+            self._finish_gate(t, g, verdict, start)
             return
         slice_s = self._wall() - start
         g.work_s += slice_s

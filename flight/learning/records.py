@@ -107,10 +107,13 @@ class _Gating:
     """A candidate going through the gate, one slice per tick gap."""
 
     held: _Held
-    candidate: ResidualQueue | None  # set by the first slice
-    steps: Generator[None, None, GateVerdict]
+    candidate: ResidualQueue | None  # set when the gate is done
+    steps: Generator[None, None, tuple[GateVerdict, ResidualQueue]]
     work_s: float  # wall time of the slices so far (fold and filtering included)
     max_slice_s: float
+    job: int = 0  # the trainer judges it (``install.gate_job``): the job's id (0: the slices run here)
+    calls: int = 0  # tick gaps since the job was sent
+    verdict: tuple[GateVerdict, int] | None = None  # the job's answer: the verdict and its slice count
 
 
 @dataclass
@@ -148,6 +151,8 @@ class OnlineStats:
     pace_wait_s: float = 0.0  # wall time spent holding the simulation back for honest latency
     max_slice_s: float = 0.0  # longest gate/swap slice between two ticks
     late_ticks: int = 0  # ticks whose compute plus the learner's install work before them exceeded the period
+    trainer_cpu_s: float = 0.0  # CPU time of the trainer's rounds and jobs (its warm-up before take-off aside)
+    gate_jobs: int = 0  # candidates the trainer judged (the rest were judged in the loop's tick gaps)
     swap_s: list[float] = field(default_factory=list)
     install_s: list[float] = field(default_factory=list)
     train_wall_s: list[float] = field(default_factory=list)

@@ -116,6 +116,8 @@ class LearnerReports:
             "latency_median_s": float(np.median(s.latency_s)) if s.latency_s else None,
             "latency_max_s": float(max(s.latency_s)) if s.latency_s else None,
             "pace_wait_s": s.pace_wait_s,
+            "trainer_cpu_s": round(s.trainer_cpu_s, 3),
+            "gates_in_trainer": s.gate_jobs,
             "final_model_version": self._flying.version,
         }
 

@@ -16,6 +16,8 @@ from typing import Any, Callable
 
 from cfknode.models.trainer_process import (
     IGNORED_SIGNALS,
+    Job,
+    JobOutcome,
     TrainerReady,
     TrainerSettings,
     TrainOutcome,
@@ -35,7 +37,10 @@ class TrainerClient:
 
     States: ``starting`` (spawned, importing torch), ``idle``, ``busy`` (one request out),
     ``stopped``. Nothing here blocks unless asked to (``wait_ready``, ``poll(timeout)``).
+    Between rounds it also runs the flight side's numpy ``Job``s (``submit_job``).
     """
+
+    runs_jobs = True  # a learner may hand it the gate (a shared trainer's ports do not: their queue is rounds)
 
     def __init__(
         self,
@@ -58,6 +63,7 @@ class TrainerClient:
         self.starts = 0
         self.pid: int | None = None
         self.warmup_s = math.nan
+        self.ready: TrainerReady | None = None  # the running trainer's report: its niceness and threads
         self.start_problem = ""  # why the last wait_ready failed, one line
         self.tagged = False  # a shared trainer's protocol (trainer_main's ``tagged``)
 
@@ -112,6 +118,11 @@ class TrainerClient:
         self._send(request)
         self.state = "busy"
 
+    def submit_job(self, job: Job) -> None:
+        """Hand the idle trainer numpy work (``Job``); its ``JobOutcome`` comes through ``poll`` like a
+        round's result, with the same hang deadline."""
+        self.submit(job)  # type: ignore[arg-type]
+
     def _send(self, message: Any) -> None:
         """Send to the child. A child killed while idle breaks the pipe: the request is lost, and
         the next ``poll`` reads the EOF and reports the crash, as for a child killed mid-round."""
@@ -120,7 +131,7 @@ class TrainerClient:
         except OSError:
             pass
 
-    def poll(self, timeout: float = 0.0) -> TrainOutcome | TrainerReady | TrainerFault | None:
+    def poll(self, timeout: float = 0.0) -> TrainOutcome | JobOutcome | TrainerReady | TrainerFault | None:
         """The trainer's next message, or a fault; waits up to ``timeout`` s (0: never blocks)."""
         if self.state in ("stopped",):
             return None
@@ -147,7 +158,8 @@ class TrainerClient:
         if isinstance(message, TrainerReady):
             self.state = "idle"
             self.warmup_s = message.warmup_s
-        elif isinstance(message, TrainOutcome):
+            self.ready = message
+        elif isinstance(message, (TrainOutcome, JobOutcome)):
             self.state = "idle"
         return message
 

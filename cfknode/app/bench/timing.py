@@ -96,7 +96,7 @@ class _TimedLayer:
         self.seconds: list[float] = []
         self._tick = 0.0
 
-    def __getattr__(self, name: str) -> Any:  # log, summary, off_air, estimate: not timed
+    def __getattr__(self, name: str) -> Any:  # summary, off_air, estimate: not timed
         return getattr(self.inner, name)
 
     def _timed(self, name: str, *args: Any) -> Any:
@@ -120,7 +120,12 @@ class _TimedLayer:
 
     def after_command(self, *args: Any) -> None:
         self._timed("after_command", *args)
+
+    def log(self) -> Any:
+        """The loop asks for the layer's /adaptation message inside every tick: the last call of the tick."""
+        out = self._timed("log")
         self.seconds.append(self._tick)
+        return out
 
 
 def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
@@ -128,6 +133,7 @@ def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
     mass 1.2x heavier than the controller believes, flown on the setpoint's thrust and attitude, so the layer
     estimates and acts."""
     from cfknode.flight.adaptation import LoopAdaptation
+    from cfknode.kernel.imu import ImuSample
     from cfknode.kernel.setpoint import read_setpoint
 
     ctrl, vehicle = dataclasses.replace(cfg.controller, adaptation="dob"), cfg.vehicle
@@ -136,18 +142,23 @@ def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
     tc = 1.0 / ctrl.rate_hz
     start = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
     p, v, q = start.p[0].copy(), start.v[0].copy(), np.array([1.0, 0.0, 0.0, 0.0])
+    imu = None
     for i in range(int(round(seconds / tc))):
         t = i * tc
         ref = circle_samples(controller.preview_times(t), 0.5, 0.4, 1.0)
-        command = controller.step(t, StateEstimate(t, p, v, q, 0.0), ref)
+        # As in flight: a mocap frame every tick and an accelerometer sample at 100 Hz, both read by the layer.
+        command = controller.step(t, StateEstimate(t, p, v, q, 0.0, frame=(t, p.copy()), imu=imu), ref)
+        controller.adaptation.log()  # type: ignore[union-attr] - the loop logs /adaptation inside the tick
         target = read_setpoint(command.setpoint, vehicle, 0.0, tc)
+        if i % 4 == 0:
+            imu = ImuSample(t, np.array([0.0, 0.0, target.thrust_n / (1.2 * vehicle.mass)]))
         q = np.array(target.quaternion)
         body_z = np.array([2 * (q[1] * q[3] + q[0] * q[2]), 2 * (q[2] * q[3] - q[0] * q[1]),
                            1 - 2 * (q[1] ** 2 + q[2] ** 2)])
         v = v + tc * (target.thrust_n / (1.2 * vehicle.mass) * body_z - [0.0, 0.0, vehicle.gravity])
         p = p + tc * v
     return Timing.of("fast layer (dob), its calls per tick", np.array(timed.seconds),
-                     note="before_solve + f_max + residual + shaping + after_command")
+                     note="before_solve + f_max + residual + shaping + after_command + log (not the log's write)")
 
 
 def swap_latency(cfg: Config, repeats: int = 2000) -> Timing:
