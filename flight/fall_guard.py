@@ -14,10 +14,11 @@ The signal is the accelerometer: its specific force along the body axis less wha
 give the vehicle config's mass. Its usual offset (a payload, a wrong thrust map, a model's share) is followed
 slowly, so only a sudden drop counts; the thrust acting is taken as the lower of the sent thrust through the
 vehicle's motor lag and through ``SLOWEST_LAG_S`` (a command that rises faster than the motors follow is not
-a lost thrust). Two successive samples ``level`` below the offset (or one 1.5 levels below), while the vehicle moves down relative to
-its reference, engage the guard; it holds the clamp, the thrust leaning at most ``reserve_deg`` for
-horizontal tracking, until the vertical velocity is back at the reference's. Without accelerometer samples
-(``state.imu`` absent or None) it never engages. Pure arithmetic per tick.
+a lost thrust). Two successive samples ``level`` below the offset (or one 1.5 levels below), while the
+vehicle moves down relative to its reference, engage the guard; it holds the clamp, the thrust leaning at most
+``reserve_deg`` for horizontal tracking, until the vertical velocity has been ``RELEASE_SPEED`` above the
+reference's for ``RELEASE_S``. Without accelerometer samples (``state.imu`` absent or None) it never engages.
+Pure arithmetic per tick.
 """
 
 from __future__ import annotations
@@ -35,6 +36,11 @@ BASELINE_S = 0.5  # s: time constant of the specific force's usual offset
 WARMUP_S = 0.5  # s of airborne samples before the guard may engage (the offset is learned first)
 SAMPLES_TO_ENGAGE = 2  # successive samples beyond the level: one is a vibration spike ...
 SINGLE_SAMPLE = 1.5  # ... unless it is this many levels beyond (10 ms sooner: ~0.1 m less sag at the limit)
+# The guard lets go once the vertical velocity has been RELEASE_SPEED above the reference's for RELEASE_S. The
+# velocity estimate predicts with the commanded acceleration between frames, so at the clamp it reads 0.1-0.15 m/s
+# high (measured at thrust-to-weight 1.05): released at the reference's speed, the vehicle was still sinking.
+RELEASE_SPEED = 0.1  # m/s
+RELEASE_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -50,11 +56,17 @@ def lag_step(acting: float, sent: float, dt: float, tau: float) -> float:
 
 
 def guard_acceleration(acc: np.ndarray, vehicle: VehicleConfig, reserve_deg: float) -> np.ndarray:
-    """The command the guard flies for the MPC's ``acc``: the vertical at the clamp less the reserve's lean (the
-    Mellinger layer's cone then leaves the horizontal part at most the reserve)."""
+    """The command the guard flies for the MPC's ``acc``: the thrust at the clamp, its horizontal part the MPC's
+    (leaning at most ``reserve_deg``) and the rest vertical. At thrust-to-weight 1.05 every 0.1 % of the thrust
+    not spent lifting is 2 % of the margin that stops the fall, so the lean is the MPC's, not the reserve's."""
     f_max = vehicle.max_thrust / vehicle.mass
     out = np.array(acc, dtype=float)
-    out[2] = f_max * math.cos(math.radians(reserve_deg)) - vehicle.gravity
+    a_xy = math.hypot(out[0], out[1])
+    room = f_max * math.sin(math.radians(reserve_deg))
+    if a_xy > room:
+        out[:2] *= room / a_xy
+        a_xy = room
+    out[2] = math.sqrt(f_max * f_max - a_xy * a_xy) - vehicle.gravity
     return out
 
 
@@ -77,6 +89,7 @@ class FallGuard:
         self._baseline = 0.0  # m/s^2, the usual specific force less the sent thrust's
         self._learned_s = 0.0
         self._beyond = 0
+        self._level_ticks = 0  # ticks in a row the vertical velocity has been RELEASE_SPEED above the reference's
         self.active = False
 
     def engaged(self, state: Any, ref_vz: float, airborne: bool) -> bool:
@@ -87,8 +100,9 @@ class FallGuard:
                 self.reset()
             return False
         falling = float(state.v[2]) < ref_vz
+        self._level_ticks = self._level_ticks + 1 if float(state.v[2]) >= ref_vz + RELEASE_SPEED else 0
         self._sample(state)
-        if self.active and not falling:
+        if self.active and self._level_ticks * self._dt >= RELEASE_S:
             self.active = False
         elif not self.active and falling and self._beyond >= SAMPLES_TO_ENGAGE:
             self.active = True
@@ -125,4 +139,5 @@ class FallGuard:
         self._baseline += (surprise - self._baseline) * (1.0 - math.exp(-dt / BASELINE_S))
 
 
-__all__ = ["BASELINE_S", "FallGuard", "FallGuardSettings", "SLOWEST_LAG_S", "guard_acceleration", "lag_step"]
+__all__ = ["BASELINE_S", "FallGuard", "FallGuardSettings", "RELEASE_S", "RELEASE_SPEED", "SLOWEST_LAG_S", "guard_acceleration",
+           "lag_step"]

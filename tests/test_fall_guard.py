@@ -14,7 +14,7 @@ import numpy as np
 
 import cfknode
 from cfknode.app.bench.thrust_sag import step_sag
-from cfknode.flight.fall_guard import FallGuard, FallGuardSettings, guard_acceleration, lag_step
+from cfknode.flight.fall_guard import RELEASE_S, RELEASE_SPEED, FallGuard, FallGuardSettings, guard_acceleration, lag_step
 from cfknode.kernel.imu import ImuSample
 from cfknode.kernel.setpoint import read_setpoint
 
@@ -36,11 +36,16 @@ def test_lag_step_is_the_exact_first_order_response() -> None:
     assert lag_step(0.3, 1.0, 0.1, 0.0) == 1.0  # no lag: the command at once
 
 
-def test_the_guard_command_is_the_clamp_less_the_reserve_lean() -> None:
+def test_the_guard_command_is_the_whole_clamp_leaning_at_most_the_reserve() -> None:
     vehicle = cfknode.load_config().vehicle
-    acc = guard_acceleration(np.array([1.0, -2.0, -3.0]), vehicle, 5.0)
-    assert acc[0] == 1.0 and acc[1] == -2.0  # the MPC's horizontal command stays (the cone bounds it)
-    assert math.isclose((acc[2] + vehicle.gravity) * vehicle.mass, vehicle.max_thrust * math.cos(math.radians(5.0)))
+    f_max = vehicle.max_thrust / vehicle.mass
+    small = guard_acceleration(np.array([0.3, -0.4, -3.0]), vehicle, 5.0)
+    assert small[0] == 0.3 and small[1] == -0.4  # the MPC's horizontal command stays when it fits
+    assert math.isclose(math.hypot(0.5, small[2] + vehicle.gravity), f_max)  # the rest of the clamp lifts
+    large = guard_acceleration(np.array([1.0, -2.0, -3.0]), vehicle, 5.0)
+    assert math.isclose(math.hypot(large[0], large[1]), f_max * math.sin(math.radians(5.0)))
+    assert math.isclose(large[1] / large[0], -2.0)  # shrunk along its own direction
+    assert math.isclose(math.hypot(math.hypot(large[0], large[1]), large[2] + vehicle.gravity), f_max)
 
 
 def feed(guard: FallGuard, mass: float, thrust_n: float, seconds: float, t0: float, vz: float,
@@ -70,7 +75,10 @@ def test_a_lost_thrust_while_falling_engages_within_two_samples_and_a_climb_rele
     # The mass jumps to 1.33x: the same thrust now gives 0.38 of the weight, and the vehicle starts to fall.
     flown = feed(guard, 1.33 * vehicle.mass, 0.5 * hover, 0.05, 1.0, -0.2)
     assert any(flown) and flown.index(True) <= 0.02 * RATE and guard.engagements == 1
-    assert not any(feed(guard, 1.33 * vehicle.mass, 0.5 * hover, 0.01, 1.05, 0.01))  # back at the reference's speed
+    assert all(feed(guard, 1.33 * vehicle.mass, 0.5 * hover, 0.1, 1.05, 0.05))  # not yet clearly climbing
+    # Climbing relative to the reference: let go after RELEASE_S (the estimate reads high at the clamp).
+    held = feed(guard, 1.33 * vehicle.mass, 0.5 * hover, 0.1, 1.15, RELEASE_SPEED + 0.01)
+    assert held[0] and not held[-1] and held.index(False) == round(RELEASE_S * RATE) - 1
 
 
 def test_a_fast_climb_command_or_a_lost_thrust_without_a_fall_does_not_engage() -> None:
