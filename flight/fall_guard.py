@@ -87,6 +87,7 @@ class FallGuard:
         self._have_thrust = False
         self._imu_t = -math.inf
         self._baseline = 0.0  # m/s^2, the usual specific force less the sent thrust's
+        self._surprise = 0.0  # m/s^2, the newest sample's
         self._learned_s = 0.0
         self._beyond = 0
         self._level_ticks = 0  # ticks in a row the vertical velocity has been RELEASE_SPEED above the reference's
@@ -103,7 +104,11 @@ class FallGuard:
         self._level_ticks = self._level_ticks + 1 if float(state.v[2]) >= ref_vz + RELEASE_SPEED else 0
         self._sample(state)
         if self.active and self._level_ticks * self._dt >= RELEASE_S:
+            # The thrust now is the new normal: only a further drop engages again. Otherwise a vehicle above its
+            # reference (the nominal MPC flies 0.35 m high at 0.5x) was held there by the guard in bursts for
+            # 0.8 s after the 1.33x step, until the slow offset caught up.
             self.active = False
+            self._baseline, self._beyond = self._surprise, 0
         elif not self.active and falling and self._beyond >= SAMPLES_TO_ENGAGE:
             self.active = True
             self.engagements += 1
@@ -127,6 +132,7 @@ class FallGuard:
         dt = 0.0 if self._imu_t == -math.inf else min(imu.t - self._imu_t, BASELINE_S)
         self._imu_t = imu.t
         surprise = float(imu.specific_force[2]) - min(self._fast, self._slow) / self.vehicle.mass
+        self._surprise = surprise
         if self._learned_s < WARMUP_S:  # a plain mean over the first samples
             self._learned_s += dt
             self._baseline += (surprise - self._baseline) * (dt / self._learned_s if self._learned_s > 0.0 else 1.0)
