@@ -22,8 +22,9 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from cfknode.flight.adaptation import GROUND_MARGIN, AdaptationEstimate, AdaptationLayer, LoopAdaptation, OracleAdaptation
+from cfknode.flight.fall_guard import FallGuard, FallGuardSettings, guard_acceleration
 from cfknode.flight.geometric import GeometricGains, geometric_acc
-from cfknode.flight.mellinger import command_saturated, force_to_setpoint, shape_force
+from cfknode.flight.mellinger import CommandShaping, command_saturated, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, linearisation_points
 from cfknode.flight.mpc_problem import MpcParameters
 from cfknode.flight.settings import ControllerConfig
@@ -69,9 +70,11 @@ class Command:
     solve_s: float  # the MPC's own solve time (0 without an MPC)
     ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
     saturated: bool = False  # the command as sent was cut: thrust at the RPYT clamp, or the tilt limit or cone
+    # (or the fall guard flew it: its motion is the guard's, not the model's)
     # The adaptation layer's estimate and state this tick (tracking a step, frozen, saturated, the axes it acts
     # on); None without a layer.
     layer: AdaptationEstimate | None = None
+    guarded: bool = False  # the fall guard flew the thrust clamp (flight/fall_guard.py)
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,7 @@ class TickInfo:
     # The fast layer's estimate this tick (an ``AdaptationEstimate``; None without a layer): the learner does
     # not train on the layer's own transients (a step being tracked, a mass still being learned).
     layer: AdaptationEstimate | None = None
+    guarded: bool = False  # the fall guard flew it: the thrust dropped under the flying model (the learner drops it)
 
 
 class TickObserver(Protocol):
@@ -147,6 +151,11 @@ class Controller:
             self.adaptation = OracleAdaptation(settings, vehicle, true_mass)
         elif adaptation is None and settings.adaptation != "none":
             self.adaptation = LoopAdaptation(settings, vehicle, ground_z)
+        # Without a fast layer nothing else sees a lost thrust in time: the fall guard (flight/fall_guard.py).
+        self.fall_guard: FallGuard | None = None
+        if self.adaptation is None and solver is not None and settings.fall_guard_level > 0.0:
+            self.fall_guard = FallGuard(FallGuardSettings(settings.fall_guard_level, settings.cone_reserve_deg,
+                                                          settings.rate_hz), vehicle)
         self._x_pred: np.ndarray | None = None
         self._u_pred: np.ndarray | None = None
         self._pending: TickInfo | None = None
@@ -203,19 +212,25 @@ class Controller:
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
         acc, ok, solve_s, source, status, model_residual = self._acceleration(
             state, ref, force_fallback, thrust_limit)
-        shaped = shape_force(acc, self.vehicle, self.settings, adapt.shaping() if adapt is not None else None)
+        shaping = adapt.shaping() if adapt is not None else None
+        guarding = self._guarding(state, float(ref.v[0][2]), phase)
+        if guarding:  # the clamp, the horizontal within the reserve's lean (the Mellinger layer's cone)
+            acc, shaping = guard_acceleration(acc, self.vehicle, self.settings.cone_reserve_deg), CommandShaping()
+        shaped = shape_force(acc, self.vehicle, self.settings, shaping)
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
         if adapt is not None:
             adapt.after_command(np.concatenate((state.p, state.v)), shaped, setpoint.thrust, model_residual)
+        if self.fall_guard is not None:
+            self.fall_guard.sent(setpoint.thrust * self.vehicle.newton_per_cmd)
         # From the command actually sent, on every path: a cut tick's motion is the limit's, not the model's.
-        saturated = command_saturated(shaped, setpoint, self.vehicle)
+        saturated = command_saturated(shaped, setpoint, self.vehicle) or guarding
         command = Command(acc, setpoint, source, status, solve_s, ok, saturated,
-                          adapt.estimate if adapt is not None else None)
+                          adapt.estimate if adapt is not None else None, guarding)
         if self.observers:
             version = self.model.version if self.model is not None else 0
             self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,
                                      time.perf_counter() - start, solve_s, False, version, saturated=saturated,
-                                     layer=adapt.estimate if adapt is not None else None)
+                                     layer=adapt.estimate if adapt is not None else None, guarded=guarding)
         return command
 
     def publish(self, **tick: Any) -> None:
@@ -238,6 +253,16 @@ class Controller:
         """A tick someone else flew (motors off, waiting for a pose): the adaptation starts over."""
         if self.adaptation is not None:
             self.adaptation.off_air()
+        if self.fall_guard is not None:
+            self.fall_guard.reset()
+
+    def _guarding(self, state: State, ref_vz: float, phase: str) -> bool:
+        """Whether the fall guard flies this tick: only on the pattern (take-off and landing change the height on
+        purpose, near the floor the ground carries part of the weight)."""
+        if self.fall_guard is None:
+            return False
+        airborne = phase == "TRACK" and float(state.p[2]) > (self._ground_z or 0.0) + GROUND_MARGIN
+        return self.fall_guard.engaged(state, ref_vz, airborne)
 
     def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool,
                       thrust_limit: float) -> tuple[Any, ...]:

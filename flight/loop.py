@@ -384,10 +384,11 @@ class _Loop:
             except Exception as exc:  # noqa: BLE001
                 self.fault("the controller's observers", exc, ERROR_RECORD)
         if self.observers:
-            saturated = tick.action is FLY and tick.command is not None and tick.command.saturated
+            flown = tick.command if tick.action is FLY else None
             ref = tick.ref
             info = TickInfo(tick.now, tick.est, ref.p[0], ref.v[0], self.acc_prev, tick.sp, tick.source,
-                            tick.compute, tick.solve_s, tick.missed, version, sup.state.value, saturated)
+                            tick.compute, tick.solve_s, tick.missed, version, sup.state.value,
+                            flown is not None and flown.saturated, guarded=flown is not None and flown.guarded)
             for observer in self.observers:
                 observer.on_tick(info)
 

@@ -112,6 +112,8 @@ class ControllerConfig:
     adaptation_settings: AdaptationTuning
     cone_reserve_deg: float = setting(5.0, unit="deg", low=0, high=20,
         doc="tilt the thrust cone always leaves horizontal tracking at the clamp (fast adaptation only)")
+    fall_guard_level: float = setting(3.0, unit="m/s^2", low=0, high=20,
+        doc="no fast layer: a specific-force drop this far below the sent thrust's flies the clamp until the fall stops")
     cache_dir: str | None = setting(None, doc="folder for the MPC's compiled code (null: $XDG_CACHE_HOME/cfknode, "
                                                "else ~/.cache/cfknode)")
 

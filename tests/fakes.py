@@ -29,6 +29,8 @@ class Tick:
     compute_s: float = 0.0
     supervisor_state: str = ""
     layer: Any = None  # the fast layer's AdaptationEstimate, when one flies
+    guarded: bool = False  # the fall guard flew the tick (the thrust dropped under the model)
+    saturated: bool = False  # the command was cut by a limit, or the guard flew it
 
 
 class ListLog:

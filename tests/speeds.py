@@ -153,6 +153,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_watcher_takes_garbage_as_stop_and_says_so": FAST,
     },
     "test_example.py": SPAWNS,
+    "test_fall_guard.py": {
+        "*": FAST,
+        "test_the_nominal_mpc_stops_a_fall_at_the_thrust_limit_only_with_the_guard": (SLOW,),
+    },
     "test_faults.py": {
         "*": BOTH,
         "test_a_late_mpc_answer_is_replaced_by_the_fallback": FAST,

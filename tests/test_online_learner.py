@@ -186,6 +186,20 @@ def test_a_model_the_world_changed_under_is_dropped_for_nominal() -> None:
     assert slot.version == first_after.version  # and learning goes on from nominal
 
 
+def test_a_model_flying_when_the_fall_guard_catches_a_lost_thrust_is_dropped_and_its_ticks_not_windowed() -> None:
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(constant_model(TRUE_R), req))
+    flight.run(0.8)
+    assert slot.version == 1 and slot.model is not None
+    windows = learner.recorder.windows
+    est = Est(np.array([0.0, 0.0, 1.0]), flight.v.copy())
+    for k in range(40):  # the guard flies the clamp: its ticks are flagged saturated and guarded
+        learner.on_tick(Tick(flight.k * PERIOD, est, np.array([0.0, 0.0, 5.3]), model_version=slot.version,
+                             supervisor_state="TRACK", guarded=True, saturated=True))
+        flight.k += 1
+    assert slot.model is None and learner.stats.drops == 1 and learner.recorder.windows == windows
+    assert "fall guard" in log.topic("/model")[-1]["reason"]
+
+
 def test_no_window_is_sent_while_the_fast_layer_is_still_learning_the_mass() -> None:
     flight, learner, trainer, _, _ = make(lambda req: outcome_with(constant_model(TRUE_R), req))
     flight.layer = lambda t: AdaptationEstimate(np.zeros(3), 1.0 + 0.1 * min(t, 1.0), np.ones(3))  # moving for 1 s

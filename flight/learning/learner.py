@@ -40,7 +40,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cfknode.flight.learning.monitor import ModelMonitor, MonitorVerdict
+from cfknode.flight.learning.monitor import ModelMonitor
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.gate import GateVerdict
 from cfknode.flight.learning.install import GateRules, TrainerJudging, install_steps
@@ -130,7 +130,9 @@ class OnlineLearner(LearnerReports, TrainerJudging):
             self._on_window(window)
         if self._watch is not None:
             self._watch_tick(tick)
-        if self.monitor is not None and not self.s.paper_lockstep:
+        if getattr(tick, "guarded", False) and self._flying.model is not None:  # the thrust changed under it
+            self._drop(t, f"model {self._flying.version} was fitted before the lost thrust the fall guard caught")
+        elif self.monitor is not None and not self.s.paper_lockstep:
             self._monitor_tick(tick)
         if self.failed:
             return
@@ -427,11 +429,12 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         if monitor.add(tick.t, tick.est.v, tick.acc) and self._flying.model is not None:
             verdict = monitor.judge(self._flying.model)
             if verdict.drop:
-                self._drop(tick.t, verdict)
+                self._drop(tick.t, f"model {self._flying.version} predicts the last {verdict.ticks} ticks worse than "
+                           f"nominal ({verdict.error_model:.2f} vs {verdict.error_nominal:.2f} m/s^2 mean acceleration error)")
 
-    def _drop(self, t: float, verdict: MonitorVerdict) -> None:
-        """Fly nominal from the next tick: the flying model explains the newest motion worse than no model."""
-        dropped = self._flying.version
+    def _drop(self, t: float, reason: str) -> None:
+        """Fly nominal from the next tick: the flying model explains the newest motion worse than no model, or the
+        fall guard caught a lost thrust the model was fitted without."""
         version, self._next_version = self._next_version, self._next_version + 1
         record = self.slot.swap(None, version, t)
         self._flying = _Flying(None, version, None, ())
@@ -440,8 +443,6 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self._discard_pending_candidates(t, "dropped")
         self.stats.drops += 1
         self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, "drop"))
-        reason = (f"model {dropped} predicts the last {verdict.ticks} ticks worse than nominal "
-                  f"({verdict.error_model:.2f} vs {verdict.error_nominal:.2f} m/s^2 mean acceleration error)")
         self._log_model(t, version, "drop", reason, times=SwapTimes(record.swap_s))
         self._log_event(t, "warning", f"online: {reason}; flying nominal until the next accepted model")
 
