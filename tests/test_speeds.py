@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from speeds import FAST, GROUPS, MARKS, SLOW, SPEEDS, group_for, marks_for
+from speeds import FAST, GROUPS, LONGEST, MARKS, SLOW, SPEEDS, group_for, marks_for
 
 TESTS = Path(__file__).resolve().parent
 
@@ -58,3 +58,9 @@ def test_the_fast_run_keeps_unit_tests_of_files_that_also_fly() -> None:
 def test_collection_gives_each_test_its_files_group(request: pytest.FixtureRequest) -> None:
     marker = request.node.get_closest_marker("xdist_group")
     assert marker is not None and marker.args[0] == group_for("test_speeds.py") == "test_speeds.py"
+
+
+def test_the_longest_groups_are_groups_of_test_files() -> None:
+    groups = {group_for(file) for file in SPEEDS}
+    assert set(LONGEST) <= groups, sorted(set(LONGEST) - groups)
+    assert len(set(LONGEST)) == len(LONGEST)
