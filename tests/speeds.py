@@ -87,6 +87,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_bench_paper.py": {
         "*": FLIES,
         "test_bench_rejects_bad_arguments": FAST,
+        "test_quick_plans_one_cell_with_both_events_in_3_5_s": FAST,
     },
     "test_bench_robustness.py": {
         "*": FLIES,
