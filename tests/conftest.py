@@ -3,8 +3,9 @@
 Each test gets the marks its file (or the test itself) has in ``speeds.SPEEDS``, so
 ``python -m pytest -m "not slow"`` is the fast run (docs/testing.md). Each file is one
 ``xdist_group``, so pytest-xdist keeps a file's module fixtures (one flight, shared by its
-tests) on one worker; files that share something outside the process share a group. Each
-worker has its own runtime and cache directories.
+tests) on one worker; files that share something outside the process share a group. The longest
+groups start first (``speeds.LONGEST``), so the two workers end together. Each worker has its own
+runtime and cache directories.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from speeds import group_for, marks_for
+from speeds import LONGEST, group_for, marks_for
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
@@ -24,6 +25,29 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         for mark in marks_for(item.path.name, name):
             item.add_marker(mark)
         item.add_marker(pytest.mark.xdist_group(group_for(item.path.name)))
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)  # before pytest-xdist's own; absent without it
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """``--dist loadgroup``, but the groups of ``speeds.LONGEST`` are handed out first, longest first.
+
+    pytest-xdist hands out the groups with the most tests first, which leaves a long group of a few
+    tests (a benchmark's one run) to start last and run alone while the other worker idles.
+    """
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    def rank(group: str) -> int:
+        return LONGEST.index(group) if group in LONGEST else len(LONGEST)
+
+    class LongestFirst(LoadGroupScheduling):
+        def _assign_work_unit(self, node: object) -> None:
+            # The first of the lowest rank; the others keep pytest-xdist's order.
+            self.workqueue.move_to_end(min(self.workqueue, key=rank), last=False)
+            super()._assign_work_unit(node)
+
+    return LongestFirst(config, log)
 
 
 @pytest.fixture(autouse=True, scope="session")

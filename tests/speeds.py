@@ -96,6 +96,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_bench_paper.py": {
         "*": FLIES,
         "test_bench_rejects_bad_arguments": FAST,
+        "test_quick_plans_one_cell_with_both_events_in_3_5_s": FAST,
     },
     "test_bench_learning.py": {
         "*": FAST,
@@ -496,6 +497,14 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
 
 # Files that share something outside their process run on one pytest-xdist worker, one at a time.
 GROUPS: dict[str, str] = {"test_bench_executor.py": "ray", "test_fleet_ray.py": "ray"}
+
+# The groups that take longest, longest first (docs/testing.md#measured): the workers start them before
+# the rest, so neither is left with one of them at the end while the other has nothing to do.
+LONGEST: tuple[str, ...] = (
+    "test_bench_hierarchical.py", "test_bench_paper.py", "ray", "test_faults.py", "test_online_flight.py",
+    "test_fleet_online.py", "test_bench_online.py", "test_learner_with_layer.py", "test_fleet.py",
+    "test_thrust_limit.py", "test_fleet_signals.py", "test_bounded_inputs.py", "test_replay.py",
+)
 
 
 def marks_for(file: str, test: str, table: Mapping[str, Marks | Mapping[str, Marks]] = SPEEDS) -> Marks:

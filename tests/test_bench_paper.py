@@ -1,21 +1,42 @@
 """``cfknode bench paper --quick``: the whole benchmark path (parallel workers, both formulations,
-every controller, markdown, JSON and the plot) on one short cell."""
+every controller, markdown, JSON and the plot) on one short cell.
+
+The command runs as a user runs it, on a plan shorter than ``--quick``'s own: 2.5 s with the two mass
+events at 0.5 s and 1.25 s (still several online rounds after each), and cfknode's online rounds
+taking a fixed 0.1 s of flight time instead of the measured training wall time, so the rounds it
+counts do not depend on the machine's load. What ``--quick`` itself plans is checked on its own.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 
+from cfknode.app.bench.paper.protocol import MassEvent
+from cfknode.app.bench.paper.suite import BenchPlan, Cell
 from cfknode.app.cli import main
+
+QUICK = BenchPlan.quick  # the command's own, before the fixture shortens it
+SHORT = {"duration": 2.5, "events": (MassEvent(0.5, -0.015), MassEvent(1.25, 0.025)), "fixed_latency": 0.1}
 
 
 @pytest.fixture(scope="module")
 def quick_bench(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "paper", "--mode", "full", "--quick", "--jobs", "2", "--out", str(out)]) == 0
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(BenchPlan, "quick", classmethod(lambda cls, forms, seed=0: replace(QUICK(forms, seed), **SHORT)))
+        assert main(["bench", "paper", "--mode", "full", "--quick", "--jobs", "2", "--out", str(out)]) == 0
     return out
+
+
+def test_quick_plans_one_cell_with_both_events_in_3_5_s():
+    plan = QUICK(("paper", "default"), 3)
+    assert plan.cells == (Cell(2.0, 0.8),) and plan.duration == 3.5 and plan.seed == 3
+    assert plan.events == (MassEvent(1.0, -0.015), MassEvent(2.0, 0.025)) and plan.fixed_latency is None
+    assert len(plan.tasks()) == 12  # per formulation: the offline model and five controllers
 
 
 def test_quick_bench_writes_table_json_and_plots(quick_bench):
@@ -31,7 +52,7 @@ def test_quick_bench_writes_table_json_and_plots(quick_bench):
 
 def test_quick_bench_json_holds_every_run(quick_bench):
     data = json.loads((quick_bench / "paper_full_quick.json").read_text())
-    assert data["plan"]["duration_s"] == 3.5 and data["jobs"] == 2
+    assert data["plan"]["duration_s"] == SHORT["duration"] and data["jobs"] == 2
     runs = {(r["formulation"], r["controller"]): r for r in data["runs"]}
     assert set(runs) == {(f, c) for f in ("paper", "default") for c in ("mpc", "knode_offline", "geometric", "knode_online", "oracle")}
     for r in runs.values():

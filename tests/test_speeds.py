@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from speeds import FAST, GROUPS, MARKS, SLOW, SPEEDS, group_for, marks_for
+from speeds import FAST, GROUPS, LONGEST, MARKS, SLOW, SPEEDS, group_for, marks_for
 
 TESTS = Path(__file__).resolve().parent
 
@@ -58,3 +58,36 @@ def test_the_fast_run_keeps_unit_tests_of_files_that_also_fly() -> None:
 def test_collection_gives_each_test_its_files_group(request: pytest.FixtureRequest) -> None:
     marker = request.node.get_closest_marker("xdist_group")
     assert marker is not None and marker.args[0] == group_for("test_speeds.py") == "test_speeds.py"
+
+
+def test_the_longest_groups_are_groups_of_test_files() -> None:
+    groups = {group_for(file) for file in SPEEDS}
+    assert set(LONGEST) <= groups, sorted(set(LONGEST) - groups)
+    assert len(set(LONGEST)) == len(LONGEST)
+
+
+def test_the_workers_take_the_longest_groups_first_then_pytest_xdists_order() -> None:
+    from types import SimpleNamespace
+
+    import conftest
+
+    class TwoWorkers:  # the options of `-n 2 --dist loadgroup`, as the scheduler reads them
+        option = SimpleNamespace(loadscopereorder=True)
+
+        def getvalue(self, name: str) -> object:
+            return {"dist": "loadgroup", "tx": ["2*popen"]}[name]
+
+    scheduler = conftest.pytest_xdist_make_scheduler(TwoWorkers(), None)
+    queue = ["test_many.py", LONGEST[1], "test_few.py", LONGEST[0]]  # as pytest-xdist orders them
+    scheduler.workqueue.update((group, {f"{group}::t": False}) for group in queue)
+    sent: list[list[int]] = []
+
+    class Node:  # a worker: what it was sent to run
+        def send_runtest_some(self, indices: list[int]) -> None:
+            sent.append(indices)
+
+    node = Node()
+    scheduler.registered_collections[node] = [f"{group}::t" for group in queue]
+    for _ in queue:
+        scheduler._assign_work_unit(node)
+    assert [queue[i] for (i,) in sent] == [LONGEST[0], LONGEST[1], "test_many.py", "test_few.py"]
