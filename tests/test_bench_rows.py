@@ -7,9 +7,12 @@ import argparse
 
 import pytest
 
-from cfknode.app.bench.hierarchical import CELLS, parse_cells
-from cfknode.app.bench.rows import (add_latency_arguments, latency_flags, latency_note, latency_overrides, oracle_ratios,
-                                recovery_text, summary_lines, wins)
+from cfknode.app.bench.hierarchical import CELLS, cell_overrides, parse_cells
+from cfknode.app.bench.online import QUICK
+from cfknode.app.bench.robustness import CELLS as ROBUST_CELLS, LAB, flight_overrides
+from cfknode.app.bench.rows import (add_latency_arguments, add_plant_arguments, latency_flags, latency_note,
+                                latency_overrides, oracle_ratios, plant_flags, plant_overrides, recovery_text,
+                                summary_lines, wins)
 from cfknode.app.cli import UsageError
 
 CELL_MSE = [
@@ -39,6 +42,18 @@ def test_latency_flags_reach_the_config_and_the_report() -> None:
     assert latency_flags(fixed) == " --latency fixed --fixed-latency 0.1" and "fixed 0.1 s" in latency_note(fixed)
     wall = p.parse_args(["--latency", "wall"])
     assert latency_flags(wall) == " --latency wall" and "wall" in latency_note(wall)
+
+
+def test_the_benches_fly_the_ideal_plant_unless_told_aero_realistic() -> None:
+    p = argparse.ArgumentParser()
+    add_plant_arguments(p)
+    default, real = p.parse_args([]), p.parse_args(["--aero", "realistic"])
+    assert plant_overrides(default) == {"sim.aero": "ideal"} and plant_flags(default) == ""
+    assert plant_overrides(real) == {"sim.aero": "realistic"} and plant_flags(real) == " --aero realistic"
+    # Each bench's cell names the plant itself, so a change of the packaged default leaves its tables alone.
+    assert cell_overrides(2.0, 0.8, 4.0, "/tmp", 0)["sim.aero"] == "ideal"
+    assert QUICK.config("/tmp", 0)["sim.aero"] == "ideal"
+    assert flight_overrides(ROBUST_CELLS[0], LAB, "mpc", "/tmp", 0)["sim.aero"] == "ideal"
 
 
 def test_cells_subset() -> None:

@@ -42,6 +42,8 @@ class CellResult:
 
 
 def cell_overrides(radius: float, speed: float, duration: float, log_dir: str, seed: int) -> dict[str, Any]:
+    from cfknode.app.bench.rows import BENCH_AERO
+
     span = radius + 1.5
     return {
         "trajectory.kind": "circle",
@@ -53,14 +55,16 @@ def cell_overrides(radius: float, speed: float, duration: float, log_dir: str, s
         "safety.fence_min": [-span, -span, -0.2],
         "safety.fence_max": [span, span, 4.0],
         "safety.max_tracking_error": 3.0,  # a bench, not people: let every controller show its error
+        "sim.aero": BENCH_AERO,
         "sim.seed": seed,
         "log.dir": log_dir,
     }
 
 
 def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: str,
-             latency: dict[str, Any] | None = None) -> CellResult:
-    """Every controller on one cell (one process; flights in sequence); ``latency``: the online flights' overrides."""
+             extra: dict[str, Any] | None = None) -> CellResult:
+    """Every controller on one cell (one process; flights in sequence); ``extra``: overrides for every flight
+    (the online latency, the plant)."""
     import time
 
     from cfknode.app.config import load_config
@@ -68,13 +72,13 @@ def run_cell(radius: float, speed: float, duration: float, seed: int, out_dir: s
     from cfknode.app.mission import run_flight
 
     start = time.perf_counter()
-    base = cell_overrides(radius, speed, duration, out_dir, seed)
+    base = {**cell_overrides(radius, speed, duration, out_dir, seed), **(extra or {})}
     schedule = mass_schedule(base, (2.0 * duration / 8.0, 5.0 * duration / 8.0))
     name = f"r{radius:g}-v{speed:g}"
     model = train_offline_model(base, schedule, Path(out_dir), name)
     mse, mse_z, outcome, online, recovery = {}, {}, {}, {}, {}
     for kind in CONTROLLERS:
-        overrides = {**base, "sim.mass_changes": list(schedule.both), **(latency or {}),
+        overrides = {**base, "sim.mass_changes": list(schedule.both),
                      **CONTROLLER_OVERRIDES[kind](model)}
         res = run_flight(load_config(overrides=overrides), name_hint=f"{name}-{kind}")
         mse[kind], mse_z[kind], outcome[kind] = res.summary.mse, res.summary.mse_z, res.outcome.message
@@ -124,7 +128,8 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     from rich.console import Console
 
     from cfknode.app.bench.executor import ExecutorSettings, run_ordered
-    from cfknode.app.bench.rows import check_latency_arguments, latency_flags, latency_note, latency_overrides
+    from cfknode.app.bench.rows import (check_latency_arguments, latency_flags, latency_note, latency_overrides,
+                                        plant_flags, plant_overrides)
 
     check_latency_arguments(args)
     executor = ExecutorSettings.from_args(args)
@@ -133,9 +138,10 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-", dir=out))
     command = (f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} {executor.command_flags()} "
-               f"--seed {args.seed}{latency_flags(args)}" + (f" --cells {args.cells}" if getattr(args, "cells", None) else ""))
+               f"--seed {args.seed}{latency_flags(args)}{plant_flags(args)}" + (f" --cells {args.cells}" if getattr(args, "cells", None) else ""))
     console = Console()
-    jobs = [(r, v, duration, args.seed, str(logs), latency_overrides(args)) for r, v in cells]
+    jobs = [(r, v, duration, args.seed, str(logs), {**latency_overrides(args), **plant_overrides(args)})
+            for r, v in cells]
     results: list[CellResult] = run_ordered(
         run_cell_job, jobs, executor, "bench hierarchical", console=console,
         describe=lambda i, res: f"r={res.radius:g} v={res.speed:g}: online {res.mse['online']:.4f}")

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from cfknode.app.bench.rows import (LABELS, ORACLE, add_latency_arguments, check_latency_arguments, latency_flags,
-                                latency_note, latency_overrides, peak_text, recovery_legend, recovery_text,
-                                summary_lines)
+from cfknode.app.bench.rows import (BENCH_AERO, LABELS, ORACLE, add_latency_arguments, add_plant_arguments,
+                                check_latency_arguments, latency_flags, latency_note, latency_overrides, peak_text,
+                                plant_flags, plant_overrides, recovery_legend, recovery_text, summary_lines)
 from cfknode.app.bench.mass_steps import PAPER_STEPS
 
 COMPARED = ("geometric", "nominal", "offline", "online", "dob", "online_dob", "oracle")
@@ -54,6 +54,7 @@ class CellSpec:
             "safety.max_tracking_error": 3.0,
             "safety.fence_min": [-self.radius - 1.5, -self.radius - 1.5, -0.2],
             "safety.fence_max": [self.radius + 1.5, self.radius + 1.5, 4.0],
+            "sim.aero": BENCH_AERO,
             "sim.seed": seed,
             "log.dir": log_dir,
             **dict(self.overrides),
@@ -110,21 +111,22 @@ class CellReport:
 
 
 def run_cell(cell: CellSpec, seeds: tuple[int, ...], out: Path, progress: Any = None,
-             latency: dict[str, Any] | None = None) -> CellReport:
+             extra: dict[str, Any] | None = None) -> CellReport:
+    """Every controller and seed on one cell; ``extra``: overrides for every flight (the online latency, the plant)."""
     from cfknode.app.config import load_config
     from cfknode.app.bench.mass_steps import CONTROLLER_OVERRIDES, mass_schedule, train_offline_model
     from cfknode.app.mission import run_flight
 
     start = time.perf_counter()
     name = cell.name.replace(" ", "-").replace("=", "").replace(",", "").replace("%", "pc")
-    base = cell.config(str(out), seeds[0])
+    base = {**cell.config(str(out), seeds[0]), **(extra or {})}
     at, factors = zip(*cell.steps)
     schedule = mass_schedule(base, at, factors)
     model = train_offline_model(base, schedule, out, name) if "offline" in cell.controllers else None
     runs = []
     for seed in seeds:
         for controller in cell.controllers:
-            overrides = {**cell.config(str(out), seed), "sim.mass_changes": list(schedule.both), **(latency or {}),
+            overrides = {**cell.config(str(out), seed), "sim.mass_changes": list(schedule.both), **(extra or {}),
                          **CONTROLLER_OVERRIDES[controller](model)}
             res = run_flight(load_config(overrides=overrides), name_hint=f"{name}-{controller}-s{seed}")
             online = {}
@@ -208,6 +210,7 @@ def add_online_arguments(p: Any) -> None:
     p.add_argument("--seeds", type=int, default=3, help="seeded flights per controller and cell (default 3)")
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
     add_latency_arguments(p)
+    add_plant_arguments(p)
 
 
 def run_online(args: Any, version: str) -> int:
@@ -226,7 +229,7 @@ def run_online(args: Any, version: str) -> int:
     console = Console()
     cells = (QUICK,) if args.quick else (LAB, PAPER, LAB_SMALL)
     seeds = (0,) if args.quick else tuple(range(args.seeds))
-    command = "cfknode bench online" + (" --quick" if args.quick else f" --seeds {args.seeds}") + latency_flags(args)
+    command = "cfknode bench online" + (" --quick" if args.quick else f" --seeds {args.seeds}") + latency_flags(args) + plant_flags(args)
     from functools import partial
 
     from cfknode.app.bench.executor import ExecutorSettings, run_ordered
@@ -234,8 +237,8 @@ def run_online(args: Any, version: str) -> int:
     # A cell's flights and its trainer: two CPUs each on Ray; one cell at a time by default.
     executor = ExecutorSettings.from_args(args, cpus_per_task=2, default_jobs=1)
     note = (lambda text: console.print(f"[dim]{text}[/]")) if executor.runs_here else None
-    reports = run_ordered(partial(run_cell, seeds=seeds, out=logs, progress=note, latency=latency_overrides(args)), cells,
-                          executor, "bench online", describe=lambda i, rep: f"{rep.cell.name}: {rep.wall_s:.0f} s",
+    extra = {**latency_overrides(args), **plant_overrides(args)}
+    reports = run_ordered(partial(run_cell, seeds=seeds, out=logs, progress=note, extra=extra), cells, executor, "bench online", describe=lambda i, rep: f"{rep.cell.name}: {rep.wall_s:.0f} s",
                           console=console)
     md = markdown(reports, command, version, latency_note(args))
     stem = "online" + ("_quick" if args.quick else "")

@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from cfknode.app.bench.rows import BENCH_AERO, add_plant_arguments, plant_flags, plant_overrides
+
 import numpy as np
 
 from cfknode.app.bench.mass_steps import PAPER_STEPS
@@ -156,6 +158,7 @@ def flight_overrides(cell: Cell, pattern: Pattern, controller: str, log_dir: str
         "safety.fence_min": [-span, -span, -0.2],
         "safety.fence_max": [span, span, max(CEILING, pattern.height + 0.5)],
         "safety.max_tracking_error": 3.0,
+        "sim.aero": BENCH_AERO,
         "sim.seed": seed,
         "log.dir": log_dir,
         "dashboard.enabled": False,
@@ -346,6 +349,7 @@ def add_robustness_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controllers", default="", help=f"comma-separated subset of {', '.join(CONTROLLERS)}")
     p.add_argument("--patterns", default="", help="comma-separated subset of lab, paper")
     p.add_argument("--duration", type=float, default=0.0, help="s of pattern, overriding both patterns' (0: theirs)")
+    add_plant_arguments(p)
 
 
 def _select(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -382,7 +386,9 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
         raise UsageError(f"--out {out} is not a directory")
     all_names = tuple(c.name for c in CELLS)
     names = _select(args.cells, all_names, "cell(s)") if args.cells else (QUICK_CELLS if args.quick else all_names)
-    cells = [c for c in CELLS if c.name in names]
+    # The plant goes first among a cell's overrides, so a cell's own settings still apply on top of it.
+    cells = [replace(c, overrides=(("sim.aero", plant_overrides(args)["sim.aero"]), *c.overrides))
+             for c in CELLS if c.name in names]
     controllers = _select(args.controllers, tuple(CONTROLLERS), "controller(s)")
     patterns = tuple({"lab": LAB, "paper": PAPER}[n] for n in _select(args.patterns, ("lab", "paper"), "pattern(s)"))
     if args.quick and not args.patterns:
@@ -397,6 +403,7 @@ def run_robustness(args: argparse.Namespace, version: str) -> int:
             command += f" {flag} '{value}'"
     if args.duration:
         command += f" --duration {args.duration:g}"
+    command += plant_flags(args)
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-robust-", dir=out))
     tasks = [(cell, pat, c) for cell in cells for pat in patterns for c in controllers]

@@ -40,6 +40,28 @@ def add_latency_arguments(p: Any) -> None:
                    help=f"s, the delay with --latency fixed (default {DEFAULT_FIXED_LATENCY_S:g})")
 
 
+# The mass-step benches reproduce the paper's protocol on the plant their tables were measured on; the
+# realistic plant (docs/realistic-plant.md) is one flag away.
+BENCH_AERO = "ideal"
+
+
+def add_plant_arguments(p: Any) -> None:
+    p.add_argument("--aero", choices=("ideal", "realistic"), default=BENCH_AERO,
+                   help=f"the simulated plant (default {BENCH_AERO}: the paper's protocol; realistic: drag, inflow, "
+                        "ground effect, downwash and a fast force, docs/realistic-plant.md)")
+
+
+def plant_overrides(args: Any) -> dict[str, Any]:
+    """Config overrides for the plant from ``--aero``."""
+    return {"sim.aero": getattr(args, "aero", BENCH_AERO)}
+
+
+def plant_flags(args: Any) -> str:
+    """The flag that reproduces the plant, empty for the bench's default."""
+    aero = getattr(args, "aero", BENCH_AERO)
+    return "" if aero == BENCH_AERO else f" --aero {aero}"
+
+
 def check_latency_arguments(args: Any) -> None:
     from cfknode.app.errors import UsageError
 

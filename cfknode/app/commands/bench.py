@@ -51,9 +51,10 @@ def _add_paper_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="bench_out", help="output directory (default ./bench_out)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cells", metavar="R:V,...", help="hierarchical mode: only these of the paper's cells, e.g. 2:0.8,3:1.0")
-    from cfknode.app.bench.rows import add_latency_arguments
+    from cfknode.app.bench.rows import add_latency_arguments, add_plant_arguments
 
     add_latency_arguments(p)  # hierarchical mode's online rows
+    add_plant_arguments(p)  # hierarchical mode's plant (full mode flies the paper's own simulator)
     _add_executor_arguments(p)
 
 
