@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from cfknode.app.logs.writer import read_log
 from cfknode.app.stall_exit import EXIT_STATUS, LoopProgress, stall_exit
 from test_loop_stall import BLOCK_AT
@@ -90,6 +92,9 @@ print("the flight returned")
 """
 
 
+@pytest.mark.flight
+@pytest.mark.process
+@pytest.mark.slow
 def test_a_realtime_flight_whose_loop_hangs_forever_exits_with_its_log_readable(tmp_path):
     logs = tmp_path / "logs"
     proc = subprocess.run([sys.executable, "-c", _HUNG_FLIGHT, str(logs), str(tmp_path / "estop"), str(TESTS)],
