@@ -213,7 +213,7 @@ class Controller:
         acc, ok, solve_s, source, status, model_residual = self._acceleration(
             state, ref, force_fallback, thrust_limit)
         shaping = adapt.shaping() if adapt is not None else None
-        guarding = self._guarding(state, float(ref.v[0][2]), phase)
+        guarding = self._guarding(state, ref, phase)
         if guarding:  # the clamp, the horizontal within the reserve's lean (the Mellinger layer's cone)
             acc, shaping = guard_acceleration(acc, self.vehicle, self.settings.cone_reserve_deg), CommandShaping()
         shaped = shape_force(acc, self.vehicle, self.settings, shaping)
@@ -256,13 +256,14 @@ class Controller:
         if self.fall_guard is not None:
             self.fall_guard.reset()
 
-    def _guarding(self, state: State, ref_vz: float, phase: str) -> bool:
+    def _guarding(self, state: State, ref: RefSamples, phase: str) -> bool:
         """Whether the fall guard flies this tick: only on the pattern (take-off and landing change the height on
         purpose, near the floor the ground carries part of the weight)."""
         if self.fall_guard is None:
             return False
         airborne = phase == "TRACK" and float(state.p[2]) > (self._ground_z or 0.0) + GROUND_MARGIN
-        return self.fall_guard.engaged(state, ref_vz, airborne)
+        above = float(state.p[2]) - float(ref.p[0][2])
+        return self.fall_guard.engaged(state, float(ref.v[0][2]), airborne, above)
 
     def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool,
                       thrust_limit: float) -> tuple[Any, ...]:

@@ -14,11 +14,15 @@ The signal is the accelerometer: its specific force along the body axis less wha
 give the vehicle config's mass. Its usual offset (a payload, a wrong thrust map, a model's share) is followed
 slowly, so only a sudden drop counts; the thrust acting is taken as the lower of the sent thrust through the
 vehicle's motor lag and through ``SLOWEST_LAG_S`` (a command that rises faster than the motors follow is not
-a lost thrust). Two successive samples ``level`` below the offset (or one 1.5 levels below), while the
-vehicle moves down relative to its reference, engage the guard; it holds the clamp, the thrust leaning at most
-``reserve_deg`` for horizontal tracking, until the vertical velocity has been ``RELEASE_SPEED`` above the
-reference's for ``RELEASE_S``. Without accelerometer samples (``state.imu`` absent or None) it never engages.
-Pure arithmetic per tick.
+a lost thrust). Two successive samples ``level`` below the offset (or one 1.5 levels below) arm the guard
+while the drop lasts. Armed, it engages once the vehicle moves down relative to its reference and could no
+longer stop above the reference: its sink rate through ``SLOWEST_LAG_S`` of motor lag and then the
+deceleration the clamp leaves at the mass the accelerometer implies (``stopping_distance``). A vehicle well
+above its reference (the nominal MPC flies 0.35 m high at 0.5x mass) descends under its own controller, and
+at thrust-to-weight 1.05 the small margin makes the guard engage high. Engaged, it holds the clamp, the thrust
+leaning at most ``reserve_deg`` for horizontal tracking, until the vertical velocity has been
+``RELEASE_SPEED`` above the reference's for ``RELEASE_S``. Without accelerometer samples (``state.imu``
+absent or None) it never engages. Pure arithmetic per tick.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ SINGLE_SAMPLE = 1.5  # ... unless it is this many levels beyond (10 ms sooner: ~
 # high (measured at thrust-to-weight 1.05): released at the reference's speed, the vehicle was still sinking.
 RELEASE_SPEED = 0.1  # m/s
 RELEASE_S = 0.05
+MARGIN_S = 0.05  # s: time constant of the accelerometer's thrust-per-mass behind the stopping distance
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,29 @@ class FallGuardSettings:
 def lag_step(acting: float, sent: float, dt: float, tau: float) -> float:
     """The acting force after ``dt`` of a first-order lag ``tau`` towards ``sent`` (exact for ``sent`` held)."""
     return sent if tau <= 0.0 else sent + (acting - sent) * math.exp(-dt / tau)
+
+
+def stopping_distance(sink: float, accel: float, margin: float, lag_s: float = SLOWEST_LAG_S) -> float:
+    """m a vehicle still drops when the clamp is sent now: sinking at ``sink`` m/s, accelerating at ``accel``
+    m/s^2 now (negative: its thrust does not hold it), the clamp leaving ``margin`` m/s^2 beyond the weight once
+    the motors' first-order lag ``lag_s`` has passed; unbounded when no margin is left. Exact for the lag:
+    v(t) = -sink + margin t - (margin - accel) lag (1 - exp(-t / lag)) is convex, so Newton from the right of
+    its root converges monotonically."""
+    if margin <= 0.0:
+        return math.inf
+    gap = max(margin - accel, 0.0)
+    if sink <= 0.0 and accel >= 0.0:
+        return 0.0
+    t = lag_s + (max(sink, 0.0) + gap * lag_s) / margin  # v(t) >= 0 here: right of the root
+    for _ in range(12):
+        decay = math.exp(-t / lag_s) if lag_s > 0.0 else 0.0
+        v = -sink + margin * t - gap * lag_s * (1.0 - decay)
+        slope = margin - gap * decay
+        if v <= 1e-6 or slope <= 0.0:
+            break
+        t -= v / slope
+    decay = math.exp(-t / lag_s) if lag_s > 0.0 else 0.0
+    return max(sink * t - margin * t * t / 2.0 + gap * lag_s * (t - lag_s * (1.0 - decay)), 0.0)
 
 
 def guard_acceleration(acc: np.ndarray, vehicle: VehicleConfig, reserve_deg: float) -> np.ndarray:
@@ -91,11 +119,14 @@ class FallGuard:
         self._learned_s = 0.0
         self._beyond = 0
         self._level_ticks = 0  # ticks in a row the vertical velocity has been RELEASE_SPEED above the reference's
+        self._per_newton = 0.0  # 1/kg: specific force per acting newton (the mass the accelerometer implies)
+        self._force = 0.0  # m/s^2: the specific force along the body axis now, smoothed like _per_newton
         self.active = False
 
-    def engaged(self, state: Any, ref_vz: float, airborne: bool) -> bool:
+    def engaged(self, state: Any, ref_vz: float, airborne: bool, above: float = 0.0) -> bool:
         """Whether this tick flies the guard: ``state`` (p, v, q and, when the vehicle logs one, ``imu``), the
-        reference's vertical velocity now, and whether the vehicle is flying the pattern clear of the ground."""
+        reference's vertical velocity now, whether the vehicle is flying the pattern clear of the ground, and
+        its height above the reference now (m)."""
         if not airborne or self.s.level <= 0.0:
             if self.active or self._imu_t > -math.inf:
                 self.reset()
@@ -109,11 +140,17 @@ class FallGuard:
             # 0.8 s after the 1.33x step, until the slow offset caught up.
             self.active = False
             self._baseline, self._beyond = self._surprise, 0
-        elif not self.active and falling and self._beyond >= SAMPLES_TO_ENGAGE:
+        elif not self.active and falling and self._beyond >= SAMPLES_TO_ENGAGE and \
+                stopping_distance(ref_vz - float(state.v[2]), self._force - self.vehicle.gravity,
+                                  self.margin()) >= above:
             self.active = True
             self.engagements += 1
         self.ticks += int(self.active)
         return self.active
+
+    def margin(self) -> float:
+        """m/s^2 the clamp lifts beyond the weight at the mass the accelerometer implies (0 before a sample)."""
+        return self.vehicle.max_thrust * self._per_newton - self.vehicle.gravity
 
     def sent(self, thrust_n: float) -> None:
         """The collective thrust [N] this tick sent."""
@@ -131,19 +168,31 @@ class FallGuard:
             return
         dt = 0.0 if self._imu_t == -math.inf else min(imu.t - self._imu_t, BASELINE_S)
         self._imu_t = imu.t
-        surprise = float(imu.specific_force[2]) - min(self._fast, self._slow) / self.vehicle.mass
+        acting = min(self._fast, self._slow)
+        surprise = float(imu.specific_force[2]) - acting / self.vehicle.mass
         self._surprise = surprise
+        drop = self._baseline - surprise if self._learned_s >= WARMUP_S else 0.0
+        self._fold_margin(float(imu.specific_force[2]), dt, fresh=drop > self.s.level and self._beyond == 0)
         if self._learned_s < WARMUP_S:  # a plain mean over the first samples
             self._learned_s += dt
             self._baseline += (surprise - self._baseline) * (dt / self._learned_s if self._learned_s > 0.0 else 1.0)
             return
-        drop = self._baseline - surprise
         if drop > SINGLE_SAMPLE * self.s.level:
             self._beyond = SAMPLES_TO_ENGAGE
         else:
             self._beyond = self._beyond + 1 if drop > self.s.level else 0
         self._baseline += (surprise - self._baseline) * (1.0 - math.exp(-dt / BASELINE_S))
 
+    def _fold_margin(self, specific_force: float, dt: float, fresh: bool) -> None:
+        """The specific force per acting newton, over the most thrust that can be acting (while the command climbs
+        the mass reads high and the margin low: the guard engages early rather than late). ``fresh``: the first
+        sample of a drop, which starts it over (the mass before the drop says nothing of the mass now)."""
+        if self._fast <= 0.0 or self._slow <= 0.0:
+            return
+        per_newton = specific_force / max(self._fast, self._slow)
+        keep = math.exp(-dt / MARGIN_S) if self._per_newton > 0.0 and not fresh else 0.0
+        self._per_newton = keep * self._per_newton + (1.0 - keep) * per_newton
+        self._force = keep * self._force + (1.0 - keep) * specific_force
 
 __all__ = ["BASELINE_S", "FallGuard", "FallGuardSettings", "RELEASE_S", "RELEASE_SPEED", "SLOWEST_LAG_S", "guard_acceleration",
-           "lag_step"]
+           "lag_step", "stopping_distance"]

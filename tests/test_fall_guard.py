@@ -14,7 +14,8 @@ import numpy as np
 
 import cfknode
 from cfknode.app.bench.thrust_sag import step_sag
-from cfknode.flight.fall_guard import RELEASE_S, RELEASE_SPEED, FallGuard, FallGuardSettings, guard_acceleration, lag_step
+from cfknode.flight.fall_guard import (RELEASE_S, RELEASE_SPEED, FallGuard, FallGuardSettings, guard_acceleration, lag_step,
+                                       stopping_distance)
 from cfknode.kernel.imu import ImuSample
 from cfknode.kernel.setpoint import read_setpoint
 
@@ -48,8 +49,19 @@ def test_the_guard_command_is_the_whole_clamp_leaning_at_most_the_reserve() -> N
     assert math.isclose(math.hypot(math.hypot(large[0], large[1]), large[2] + vehicle.gravity), f_max)
 
 
+def test_the_stopping_distance_is_the_lag_s_exact_sag() -> None:
+    g = 9.81
+    # From rest with the thrust at 0.376 of the weight: the sag of a clamp sent at the step (thrust_sag's bound).
+    assert math.isclose(stopping_distance(0.0, (0.5 / 1.33 - 1.0) * g, 0.05 * g, 0.1), step_sag(1.05, 0.5, 1.33, 0.1),
+                        rel_tol=1e-3)
+    assert math.isclose(stopping_distance(1.0, 0.0, 1.5, 0.0), 1.0 / 3.0)  # no lag: v^2 / 2a
+    assert stopping_distance(0.5, -1.0, 0.0) == math.inf  # no margin: the fall cannot be stopped
+    assert stopping_distance(-0.2, 0.5, 2.0) == 0.0  # rising and lifted: nothing to stop
+    assert stopping_distance(1.0, 0.0, 1.5, 0.1) > stopping_distance(1.0, 0.0, 1.5, 0.0)  # the lag only adds
+
+
 def feed(guard: FallGuard, mass: float, thrust_n: float, seconds: float, t0: float, vz: float,
-         measured_thrust: float | None = None) -> list[bool]:
+         measured_thrust: float | None = None, above: float = 0.0) -> list[bool]:
     """Ticks at RATE with ``thrust_n`` sent; the accelerometer (100 Hz) reads ``measured_thrust`` (default the
     sent one) over ``mass``. Returns whether the guard flew each tick."""
     out = []
@@ -57,7 +69,8 @@ def feed(guard: FallGuard, mass: float, thrust_n: float, seconds: float, t0: flo
         t = t0 + k / RATE
         f = (thrust_n if measured_thrust is None else measured_thrust) / mass
         imu = ImuSample(math.floor(t * 100.0) / 100.0, np.array([0.0, 0.0, f]))
-        out.append(guard.engaged(State(np.array([0.0, 0.0, HEIGHT]), np.array([0.0, 0.0, vz]), LEVEL, imu), 0.0, True))
+        out.append(guard.engaged(State(np.array([0.0, 0.0, HEIGHT]), np.array([0.0, 0.0, vz]), LEVEL, imu), 0.0, True,
+                                 above))
         guard.sent(thrust_n)
     return out
 
@@ -94,6 +107,18 @@ def test_a_fast_climb_command_or_a_lost_thrust_without_a_fall_does_not_engage() 
         guard.sent(1.4 * hover)
     # Thrust lost while the vehicle is still rising towards its reference: no fall to stop yet.
     assert not any(feed(guard, vehicle.mass, 1.4 * hover, 0.05, 1.1, 0.3, measured_thrust=0.4 * hover))
+
+
+def test_a_vehicle_high_enough_above_its_reference_to_stop_is_left_to_its_controller() -> None:
+    vehicle = cfknode.load_config().vehicle
+    guard = FallGuard(FallGuardSettings(2.0, 5.0, RATE), vehicle)
+    hover = vehicle.mass * vehicle.gravity
+    feed(guard, vehicle.mass, hover, 1.0, 0.0, 0.0, above=0.3)
+    # A 1.3x mass while sinking at 0.2 m/s: the clamp through 150 ms of lag stops it 0.09 m lower, so 0.3 m
+    # above its reference the guard leaves it to its controller ...
+    assert not any(feed(guard, 1.3 * vehicle.mass, hover, 0.05, 1.0, -0.2, above=0.3))
+    # ... and flies the clamp once it is closer than that.
+    assert any(feed(guard, 1.3 * vehicle.mass, hover, 0.05, 1.05, -0.2, above=0.08))
 
 
 def test_without_an_accelerometer_it_never_engages() -> None:
