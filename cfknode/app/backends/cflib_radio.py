@@ -244,6 +244,11 @@ class CflibRadio:
         and ``listener(phase, age_s)``, told from the TX thread when a stall reaches "hold" or "stop"."""
         self._stale.set_hold(int(hold.thrust), listener)
 
+    def hold_level(self, thrust: int | None) -> None:
+        """In a fleet, another drone is below this one: a stalled loop's hold is level at ``thrust`` (the
+        hover thrust) rather than descending onto it; None: the descending hold (stale_setpoint.py)."""
+        self._stale.hold_level(thrust)
+
     def stop_signal(self, count: int) -> None:
         """The flight's ``count``-th stop signal (any thread): during a stall the second stops the motors."""
         self._stale.stop_signal(count)
