@@ -210,6 +210,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_references_take_off_where_each_robot_stands": FAST,
         "test_robots_names_the_robots_and_robots_file_the_file": FAST,
     },
+    "test_fleet_stall.py": BOTH,
     "test_fleet_signals.py": {
         "*": FLIES,
         "test_a_second_sigterm_stops_every_drone": BOTH,

@@ -22,6 +22,9 @@ SHORT = {"trajectory.duration": 1.0, "trajectory.takeoff_duration": 1.5, "trajec
          "fleet.drones_per_sim_radio": 1}
 
 
+HARNESS_GUARD_S = 300.0
+
+
 def fleet_cfg(tmp_path, **over):
     return load_config(None, {**SHORT, "fleet.size": 2, "log.dir": str(tmp_path / "logs"),
                               "safety.estop_dir": str(tmp_path / "estop"), **over})
@@ -164,8 +167,9 @@ def _node_with(resource: str) -> str:
 
 
 def _tracking_actor(drone: str):
-    """The drone's actor (found by its name) once its drone flies the pattern."""
-    deadline = time.monotonic() + 60.0
+    """The drone's actor (found by its name) once its drone flies the pattern (the guard only keeps a
+    broken build from hanging the run: actors start slowly on a loaded machine)."""
+    deadline = time.monotonic() + HARNESS_GUARD_S
     actor = None
     while time.monotonic() < deadline and actor is None:
         names = [n for n in ray.util.list_named_actors() if f"-{drone}-" in n]
@@ -174,6 +178,7 @@ def _tracking_actor(drone: str):
     assert actor is not None
     while time.monotonic() < deadline and ray.get(actor.status.remote()).state != "TRACK":
         time.sleep(0.05)
+    assert ray.get(actor.status.remote()).state == "TRACK", f"{drone} never flew its pattern"
     return actor
 
 
@@ -248,6 +253,33 @@ def test_estop_all_reaches_every_actor_through_the_driver(cluster, tmp_path):
     assert "estop_land" in causes and set(causes) <= {"estop_land", "fleet_fault"}
     assert all(d.outcome.state.value == "LANDED" for d in result.drones)
     assert all(d.record.t[-1] < 8.0 for d in result.drones)  # landed well before the mission's end
+
+
+def test_a_stacked_ray_fleet_stopped_mid_flight_lands_bottom_up_as_a_local_fleet_does(cluster, tmp_path):
+    """Two actors stacked in one column (0.7 and 1.3 m), ``cfknode estop --all --land`` mid-pattern: the
+    top drone glides clear of the one below before it descends (before, each actor landed straight down
+    on its own, and cf2 came down onto cf1). The pattern is slow (0.05 m/s), so the column stays one
+    column however far apart the two actors' lockstep clocks run when the stop reaches them."""
+    from cfknode.app.commands.estop_all import estop_all
+    from cfknode.app.fleet.ray_fleet import run_fleet_ray
+    from test_fleet_stack import _airborne_min_separation
+
+    cfg = fleet_cfg(tmp_path, **{"fleet.layout": "stack", "trajectory.height": 0.7, "trajectory.duration": 8.0,
+                                 "trajectory.speed": 0.05, "fleet.stack_spacing": 0.6})
+    out: dict = {}
+    driver = threading.Thread(target=lambda: out.update(result=run_fleet_ray(cfg, _settings(cluster))), daemon=True)
+    driver.start()
+    _tracking_actor("cf1")
+    _tracking_actor("cf2")
+    assert estop_all(tmp_path / "estop", "land", timeout=10.0) == 0
+    driver.join(120.0)
+    result = out["result"]
+    for d in result.drones:
+        assert d.outcome.state.value == "LANDED" and d.outcome.cause in ("estop_land", "fleet_fault"), d.outcome.message
+        assert d.record.t[-1] < 10.0  # stopped mid-flight, not at the mission's end
+    assert _airborne_min_separation(result) >= cfg.fleet.min_separation
+    ends = [d.record.p[d.record.ticks - 1] for d in result.drones]
+    assert np.hypot(*(ends[0][:2] - ends[1][:2])) >= cfg.fleet.min_separation  # side by side on the ground
 
 
 def test_online_learning_is_refused_for_a_ray_fleet_before_ray_starts(tmp_path):

@@ -228,7 +228,7 @@ def test_two_sim_robots_fly_the_hardware_path_into_one_log(tmp_path):
         assert d.summary.extra["preflight"]["ok"], d.summary.extra["preflight"]
         rec = d.record
         pattern = (rec.t > 1.6) & (rec.t < 2.7)
-        assert np.abs(rec.p[pattern] - rec.p_ref[pattern]).max() < 0.1
+        assert np.abs(rec.p[pattern] - rec.p_ref[pattern]).max() < _tracking_bound(cfg, rec, 1.6, 2.7)
     assert result.radio_pps == {f"sim radio {base // 2}": 420.0}
     assert 0.8 < result.min_separation_m < 1.1  # opposite sides of the 0.5 m circle
     log = read_log(result.log_path)
@@ -236,6 +236,22 @@ def test_two_sim_robots_fly_the_hardware_path_into_one_log(tmp_path):
     for name in ("cf1", "cf2"):
         assert {f"/{name}/state", f"/{name}/summary", f"/{name}/events"} <= topics, topics
     assert "/summary" in topics
+
+
+TRACKS_M = 0.1  # what the closed loop tracks within while it keeps its rate (measured: about 2 cm)
+
+
+def _tracking_bound(cfg: Any, rec: Any, t0: float, t1: float) -> float:
+    """``TRACKS_M`` plus what the wall clock can take from a flight whose loop was gone for a while (the
+    process descheduled on a loaded machine: it once failed a flat 0.1 m at load 45): for the longest
+    gap ``g`` between two ticks from a second before the window to its end, the reference runs on at
+    ``trajectory.speed`` while the drone flies the last setpoint and then the radio's hold, which sinks
+    at most at the blind thrust's deficit (``safety.hold_thrust_factor``), and as long again to catch
+    up. Only what the test sets enters it; on a machine that keeps up ``g`` is one tick (2.5 ms)."""
+    ticks = (rec.t[:rec.ticks] >= t0 - 1.0) & (rec.t[:rec.ticks] <= t1)
+    g = float(np.diff(rec.t[:rec.ticks][ticks]).max())
+    sink = (1.0 - cfg.safety.hold_thrust_factor) * cfg.vehicle.gravity
+    return TRACKS_M + 2.0 * (cfg.trajectory.speed * g + 0.5 * sink * g * g)
 
 
 def test_a_fleet_is_all_real_or_all_simulated(tmp_path):

@@ -145,6 +145,45 @@ def test_a_drone_does_not_descend_while_a_flying_drone_is_right_below(tmp_path):
     assert sups[1].lands == ["fleet_fault"]
 
 
+def test_a_stalled_loops_hold_is_level_for_a_drone_with_another_below_it(tmp_path):
+    from cfknode.app.fleet.landing_order import StallHold
+
+    class _Radio:
+        def __init__(self):
+            self.levels = []
+
+        def hold_level(self, thrust):
+            self.levels.append(thrust)
+
+    cfg = stack_cfg(tmp_path, size=2, **{"trajectory.duration": 10.0})
+    names, _, refs = drone_configs(cfg)
+    radios = [_Radio(), _Radio()]
+    coord = FleetCoordinator(cfg, names, [_Sup(), _Sup()], refs, _Log(), [StallHold(r, 38000) for r in radios])
+    coord.on_tick(0, _tick(4.0, [0.5, 0.0, 1.0], "TRACK"))
+    coord.on_tick(1, _tick(4.0, [0.5, 0.1, 1.5], "TRACK"))  # right above cf1
+    coord.on_tick(0, _tick(4.1, [0.5, 0.0, 1.0], "TRACK"))
+    assert radios[1].levels == [38000] and radios[0].levels == []  # told once; the lowest descends
+    coord.on_tick(1, _tick(4.1, [1.2, 1.2, 1.5], "TRACK"))  # clear of it: the descending hold again
+    assert radios[1].levels == [38000, None]
+
+
+def test_a_ray_actors_gate_judges_by_the_fleet_the_driver_last_told_it(tmp_path):
+    from cfknode.app.fleet.landing_order import StackGeometry, ViewGate
+
+    cfg = stack_cfg(tmp_path, size=2)
+    notes = []
+    gate = ViewGate(StackGeometry.from_config(cfg), 1, notes.append)
+    here = np.array([0.5, 0.0, 1.5])
+    assert not gate.blocked(here)  # nothing told yet: nothing known below
+    gate.update([(0.5, 0.0, 1.0), (0.5, 0.0, 1.5)], ["TRACK", "TRACK"], {})
+    spot, move_s = gate.spot(here)
+    assert np.hypot(*(spot[:2] - [0.5, 0.0])) >= LANDING_CLEARANCE * cfg.fleet.min_separation - 1e-9
+    assert spot[2] == 1.5 and move_s > 0 and gate.spot_now == tuple(spot)
+    assert gate.blocked(here) and gate.blocked(here) and len(notes) == 1  # waits, said once
+    gate.update([(0.5, 0.0, 0.0), (0.5, 0.0, 1.5)], ["LANDED", "TRACK"], {})
+    assert not gate.blocked(here)  # the one below is down
+
+
 # --- in flight ----------------------------------------------------------------------------------
 
 

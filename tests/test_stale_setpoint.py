@@ -106,6 +106,17 @@ def test_the_hold_never_asks_for_more_thrust_than_the_loop_did() -> None:
     assert _slots(guard, clock, 6)[-1] == (0.0, 0.0, 0.0, 20000)
 
 
+def test_over_another_drone_the_hold_is_level_at_the_hover_thrust_capped_by_the_loop() -> None:
+    guard, clock, _ = _guard()
+    guard.hold_level(38000)  # the fleet: a drone below this one
+    guard.stamp(FLY)
+    assert _slots(guard, clock, 6)[-1] == (0.0, 0.0, 0.0, 38000)  # level, not the descending 36000
+    guard.stamp((0.0, 5.0, 0.0, 37000))  # never more than the loop last asked for
+    assert _slots(guard, clock, 6)[-1] == (0.0, 0.0, 0.0, 37000)
+    guard.hold_level(None)  # nothing below any more: descend again
+    assert _slots(guard, clock, 1) == [(0.0, 0.0, 0.0, HOLD_THRUST)]
+
+
 def test_zero_thrust_is_never_replaced_nor_stopped() -> None:
     # A landed drone whose loop has ended (a fleet's others still flying) keeps its heartbeat.
     guard, clock, heard = _guard()

@@ -67,6 +67,7 @@ class RadioStats:
     imu_late: int = 0  # lockstep ticks that gave up waiting for an emitted accelerometer sample
     stale_holds: int = 0  # times the loop's setpoint went stale in flight and the radio held level, descending
     stale_stops: int = 0  # times (at most once) a stale setpoint made the radio stop the motors
+    motors_off: bool = False  # nothing but zeros goes out: no thrust asked for yet or any more, stopped, or handed back
 
 
 @dataclass(frozen=True)
@@ -243,6 +244,11 @@ class CflibRadio:
         and ``listener(phase, age_s)``, told from the TX thread when a stall reaches "hold" or "stop"."""
         self._stale.set_hold(int(hold.thrust), listener)
 
+    def hold_level(self, thrust: int | None) -> None:
+        """In a fleet, another drone is below this one: a stalled loop's hold is level at ``thrust`` (the
+        hover thrust) rather than descending onto it; None: the descending hold (stale_setpoint.py)."""
+        self._stale.hold_level(thrust)
+
     def stop_signal(self, count: int) -> None:
         """The flight's ``count``-th stop signal (any thread): during a stall the second stops the motors."""
         self._stale.stop_signal(count)
@@ -416,7 +422,14 @@ class CflibRadio:
             imu_late=imu.late if imu is not None else 0,
             stale_holds=self._stale.holds,
             stale_stops=self._stale.stops,
+            motors_off=self._motors_off(),
         )
+
+    def _motors_off(self) -> bool:
+        """Whether the radio sends zero thrust (or nothing) whatever the loop does next: the loop's
+        newest setpoint has none (never flown, landed), the stall guard stopped, or the link is handed back."""
+        latest = self._stale.latest
+        return self._shut or self._stale.stopped or latest is None or int(latest[3]) == 0
 
 
 def ensure_cflib_drivers() -> None:

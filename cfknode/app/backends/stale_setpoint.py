@@ -11,6 +11,10 @@ TX thread asks ``StaleGuard.outgoing`` what to send at every slot. By the setpoi
   docs/hardware.md#commander-watchdog): zeros, motors off, and no more e-stop heartbeats. This
   is latched: a loop that comes back later does not restart the motors.
 
+In a fleet, a drone with another one below it (``hold_level``, kept up to date by the fleet's
+coordinator at every tick) holds level instead: the hover thrust, never more than the loop last
+asked for, so a stalled stack does not sink onto the drone below; the lowest drone descends.
+
 A setpoint with zero thrust is never replaced: the motors are already off, and a landed drone
 whose loop has ended (the fleet's others still flying) must keep its heartbeat. An operator's
 stop (``operator_stop``: ``cfknode estop``) stops the motors as soon as the loop is stalled,
@@ -85,6 +89,7 @@ class StaleGuard:
         self._lock = threading.Lock()
         self._listener: Callable[[str, float], None] | None = None
         self._operator_stop = False  # an operator asked for the motors off: no hold, a stop
+        self._level_thrust: int | None = None  # a drone below: the hold is level, at this (hover) thrust
         self.holds = 0  # stalls that reached the hold
         self.stops = 0  # stalls that reached the stop (at most one: it latches)
 
@@ -92,6 +97,11 @@ class StaleGuard:
         """The hold's thrust (the supervisor's blind thrust) and who hears of a phase change."""
         self._hold_thrust = int(hold_thrust)
         self._listener = listener
+
+    def hold_level(self, thrust: int | None) -> None:
+        """A drone is below this one (any thread): a hold keeps ``thrust`` (its hover thrust, never more
+        than the loop last asked for) instead of the descending hold thrust; None: descend again."""
+        self._level_thrust = None if thrust is None else int(thrust)
 
     @property
     def phase(self) -> str:
@@ -132,7 +142,8 @@ class StaleGuard:
         if self._phase == STOP:
             return ZERO
         if self._phase == HOLD:
-            return hold_setpoint(sp, self._hold_thrust)
+            level = self._level_thrust
+            return hold_setpoint(sp, self._hold_thrust if level is None else level)
         return sp
 
     def stop_signal(self, count: int) -> None:

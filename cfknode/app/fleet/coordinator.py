@@ -19,20 +19,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cfknode.app.config import Config
+from cfknode.app.fleet.landing_order import FLYING as _FLYING
+from cfknode.app.fleet.landing_order import GLIDE_SPEED, LANDING_CLEARANCE, StackGeometry
 from cfknode.flight.controller import TickInfo
 from cfknode.flight.formation import HoldableReference
-from cfknode.safety.geofence import Geofence
-from cfknode.safety.landing_spot import below, clear_spot
 from cfknode.safety.ordered_landing import OrderedLanding
 from cfknode.safety.part_errors import signal_stop_text
 from cfknode.safety.separation import SeparationWatch
 from cfknode.safety.supervisor import Supervisor
-
-_FLYING = ("TAKEOFF", "TRACK", "LAND")
-# A drone lands at least this many min_separations (horizontally) from every drone below it, gliding
-# there first at GLIDE_SPEED: a drone's downwash reaches further down than sideways.
-LANDING_CLEARANCE = 1.5
-GLIDE_SPEED = 0.4  # m/s
 _FAILED = ("LAND", "EMERGENCY", "IDLE", "LANDED")
 # The fleet's own landings never trigger the fault policy; nor do stop signals, which every drone got.
 _OWN_CAUSES = ("separation", "fleet_fault", "sigint", "sigterm", "sighup")
@@ -42,7 +36,9 @@ class FleetCoordinator:
     """Separation watch and fault policy across the fleet; a tick observer of every drone (``tap(i)``)."""
 
     def __init__(self, cfg: Config, names: Sequence[str], supervisors: Sequence[Supervisor],
-                 refs: Sequence[HoldableReference], log: Any) -> None:
+                 refs: Sequence[HoldableReference], log: Any, stall_holds: Sequence[Any] = ()) -> None:
+        """``stall_holds``: each drone's ``landing_order.StallHold`` (wall-clock fleets), told at every
+        tick whether a drone is below it, so a stall's hold is level there (docs/fleet.md)."""
         self.names = list(names)
         self._sups = list(supervisors)
         self._refs = list(refs)
@@ -54,9 +50,8 @@ class FleetCoordinator:
         # supervisor's nominal landing would otherwise follow the held reference and cut in the air).
         self._land_deadline = [r.segments["land"][0] - 2.0 * self._period for r in refs]
         self.watch = SeparationWatch(names, cfg.fleet.min_separation)
-        fence = Geofence.from_config(cfg.safety)
-        self._soft = (fence.soft_lo, fence.soft_hi)
-        self._centre = (float(cfg.trajectory.center[0]), float(cfg.trajectory.center[1]))
+        self.geometry = StackGeometry.from_config(cfg)  # where a drone lands, when it may descend
+        self._stall_holds = list(stall_holds)
         self._spots: dict[int, np.ndarray] = {}  # where each drone glides before it lands (clear of those below)
         self._glide_end: dict[int, float] = {}  # flight time each drone's glide there ends
         self._state = [""] * len(names)
@@ -102,6 +97,8 @@ class FleetCoordinator:
             self.log_signals(t)
         if info.est is not None:
             self._p[i] = info.est.p
+        if self._stall_holds:
+            self._stall_holds[i].set(self.geometry.over(i, self._p))
         pending = self._land_at.get(i)
         # Bottom up: not while a flying drone is below (until its nominal landing would start).
         if pending is not None and t >= pending[0] - 1e-9 and (t >= self._land_deadline[i] or not self._blocked(i)):
@@ -159,16 +156,7 @@ class FleetCoordinator:
     def _landing_spot(self, k: int, p: np.ndarray) -> tuple[np.ndarray, float]:
         """Where drone k lands (clear of every drone below it and of their spots, and of the spots of
         the drones above it, which descend through there) and the glide's duration."""
-        z = float(p[2])
-        spots = [q for j, q in self._spots.items() if j != k]
-        others = [*below(p, [*(self._p[j] for j in range(len(self.names)) if j != k), *spots]),
-                  *(q for q in spots if float(q[2]) > z)]
-        spot = clear_spot(p, others, LANDING_CLEARANCE * self.watch.min_separation, *self._soft,
-                          away_from=self._centre)
-        if spot is None:
-            return np.asarray(p, dtype=float).copy(), 0.0  # nowhere clear: land in place (and logged as close)
-        distance = float(np.hypot(*(spot[:2] - np.asarray(p)[:2])))
-        return spot, (distance / GLIDE_SPEED if distance > 0 else 0.0)
+        return self.geometry.spot(k, p, self._p, self._spots)
 
     def _bottom_up(self, drones: Sequence[int]) -> list[int]:
         """``drones``, lowest first: each one's spot then avoids the spots of those below it."""
@@ -176,14 +164,7 @@ class FleetCoordinator:
 
     def _blocked(self, k: int) -> bool:
         """Whether a flying drone is below drone k within the separation, horizontally: k waits to land."""
-        p = self._p[k]
-        if p is None:
-            return False
-        for j, q in enumerate(self._p):
-            if j != k and q is not None and self._state[j] in _FLYING and float(q[2]) < float(p[2]):
-                if float(np.hypot(q[0] - p[0], q[1] - p[1])) < self.watch.min_separation:
-                    return True
-        return False
+        return self.geometry.blocked(k, self._p[k], self._p, self._state)
 
     def _schedule_land(self, k: int, t_land: float, reason: str, cause: str) -> None:
         """Land drone k at its time ``t_land`` (the earliest schedule wins); on_tick requests it."""

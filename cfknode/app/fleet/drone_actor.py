@@ -34,10 +34,12 @@ from cfknode import __version__
 from cfknode.app.backends.sim_fleet import fault_free
 from cfknode.app.config import Config
 from cfknode.app.fleet.flight import drone_configs
+from cfknode.app.fleet.landing_order import StackGeometry, ViewGate
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import FlightResult, run_flight
 from cfknode.app.ui.summary import compute_summary
 from cfknode.flight.loop import FlightRecord
+from cfknode.safety.ordered_landing import OrderedLanding
 from cfknode.safety.supervisor import Outcome
 from cfknode.safety.supervisor_types import State
 
@@ -71,6 +73,7 @@ class DroneStatus:
     # Every tick since the previous status() as (t, state, cause, position or None): the driver
     # compares the drones at the same flight time, whatever their actors' pace.
     trail: tuple[tuple[float, str, str, tuple[float, float, float] | None], ...] = ()
+    spot: tuple[float, float, float] | None = None  # where its ordered landing descends, once it has chosen
 
 
 class DroneActor:
@@ -99,6 +102,8 @@ class DroneActor:
         self._trail: deque[tuple[float, str, str, tuple[float, float, float] | None]] = deque(maxlen=TRAIL_MAX)
         self._status = DroneStatus(self.name, 0.0, None, "", "", 0, False, self._restarted, self._node_id)
         self._restart_result: FlightResult | None = None
+        # Every supervised landing is ordered among the fleet as the driver last told it (fleet_view).
+        self._gate = ViewGate(StackGeometry.from_config(cfg), spec.index, self._waits)
         if self._restarted:
             self._restart_result = self._report_restart()
 
@@ -133,6 +138,11 @@ class DroneActor:
         seconds when given (clear of the drones below), until a landing is requested."""
         self._inbox.append(("hold", (reason, to, move_s)))
 
+    def fleet_view(self, positions: list[Any], states: list[str], spots: dict[int, Any]) -> None:
+        """The fleet as the driver knows it now (every drone's position, supervisor state and landing
+        spot, this one's included): what this drone's ordered landings are judged by."""
+        self._gate.update(positions, states, spots)
+
     def land_at(self, t: float, reason: str, cause: str) -> None:
         """Land when the drone's own flight time reaches ``t`` (at once if it has)."""
         self._inbox.append(("land_at", (t, reason, cause)))
@@ -157,6 +167,13 @@ class DroneActor:
 
     def _take_supervisor(self, sup: Any) -> None:
         self._sup = sup
+        gate = self._gate  # glide clear of the drones below, wait for them, then descend (as a local fleet)
+        sup.set_landing_planner(lambda start, ground_z, t0, speed: OrderedLanding(gate, start, ground_z, t0, speed))
+
+    def _waits(self, text: str) -> None:
+        sup = self._sup
+        if sup is not None:
+            sup.note("info", f"{self.name} {text}", "fleet")
 
     def _on_tick(self, info: Any) -> None:
         t, sup = float(info.t), self._sup
@@ -185,7 +202,7 @@ class DroneActor:
         cause = sup.snapshot().cause
         with self._lock:
             self._status = dataclasses.replace(self._status, t=t, p=p, state=state, cause=cause,
-                                               ticks=self._status.ticks + 1)
+                                               ticks=self._status.ticks + 1, spot=self._gate.spot_now)
             self._trail.append((t, state, cause, p))
 
     # -- after a restart ----------------------------------------------------------------------

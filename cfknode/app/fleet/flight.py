@@ -38,6 +38,7 @@ from cfknode.app.backends.base import Backend
 from cfknode.app.backends.sim_fleet import FleetSimBackend
 from cfknode.app.config import Config, ConfigError
 from cfknode.app.fleet.coordinator import FleetCoordinator
+from cfknode.app.fleet.landing_order import StallHold
 from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
@@ -53,6 +54,7 @@ from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
+from cfknode.kernel.setpoint import thrust_command
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
 from cfknode.safety.geofence import Geofence, clamp_reference
 from cfknode.safety.operator import stop_signal_handler
@@ -289,7 +291,7 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
         sups = [build_supervisor(d.config, d.radio, trajectory=ref, log=log, deadlines_apply=not d.clock.lockstep,
                                  inputs=SupervisorInputs(battery_voltage=d.battery_voltage, link_status=d.link_status))
                 for d, ref, log in zip(drones, refs, logs)]
-        coordinator = FleetCoordinator(cfg, names, sups, refs, flog)
+        coordinator = FleetCoordinator(cfg, names, sups, refs, flog, _stall_holds(drones))
         for k, sup in enumerate(sups):  # every supervised landing bottom-up, clear of the drones below
             sup.set_landing_planner(coordinator.landing_planner(k))
         if on_coordinator is not None:
@@ -308,6 +310,15 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
     # After close: closing writes the footer, which a full disk can refuse too.
     return FleetResult(tuple(results), str(flog.path), closest, radio_pps, tuple(coordinator.events),
                        flog.incomplete())
+
+
+def _stall_holds(drones: Sequence[Backend]) -> list[StallHold]:
+    """Each drone's stalled-loop hold, level over another drone (wall clock only: in lockstep a stalled
+    loop stalls the simulator too, and no radio holds anything)."""
+    if any(d.clock.lockstep or not hasattr(d.radio, "hold_level") for d in drones):
+        return []
+    return [StallHold(d.radio, thrust_command(d.config.vehicle.mass * d.config.vehicle.gravity, d.config.vehicle))
+            for d in drones]
 
 
 def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[dict[str, Any]]],

@@ -295,6 +295,41 @@ class Timeline:
             self._co.on_tick(i, _Polled(t, state, None if p is None else _Position(np.asarray(p, dtype=float))))
 
 
+class FleetView:
+    """Every drone's latest position, supervisor state and landing spot as its actor last reported them
+    (not held back to a common flight time, as the Timeline is: a drone below that is down is down),
+    pushed to every flying actor each poll: what their ordered landings are judged by
+    (landing_order.ViewGate), so a Ray fleet lands a stack bottom-up as the one-process fleet does."""
+
+    def __init__(self, n: int, coordinator: FleetCoordinator) -> None:
+        self._co = coordinator
+        self.positions: list[Any] = [None] * n
+        self.states = [""] * n
+        self._spots: dict[int, Any] = {}
+
+    def seen(self, i: int, status: Any) -> None:
+        if status.p is not None:
+            self.positions[i] = tuple(status.p)
+        if status.state:
+            self.states[i] = status.state
+        if status.spot is not None:
+            self._spots[i] = tuple(status.spot)
+
+    def ended(self, i: int, state: str) -> None:
+        self.states[i] = state
+
+    def spots(self) -> dict[int, Any]:
+        """The spots the actors chose, else the one the driver's coordinator glides a held drone to."""
+        held = {j: tuple(float(v) for v in q) for j, q in self._co._spots.items()}
+        return {**held, **self._spots}
+
+    def push(self, actors: Sequence[Any], flying: Sequence[bool]) -> None:
+        spots = self.spots()
+        for a, on in zip(actors, flying):
+            if on:
+                a.fleet_view.remote(list(self.positions), list(self.states), spots)
+
+
 async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink], boxes: Sequence[EstopMailbox],
                      coordinator: FleetCoordinator) -> list[FlightResult]:
     """Poll the actors until every flight has ended; the fleet policy and the e-stops act meanwhile."""
@@ -305,6 +340,7 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
     results: list[FlightResult | None] = [None] * len(actors)
     polls: dict[Any, int] = {}
     timeline = Timeline(coordinator, links)
+    view = FleetView(len(actors), coordinator)
     with contextlib.ExitStack() as stack:
         stack.enter_context(stop_signal_handler(_AllDrones(links)))
         for link, box in zip(links, boxes):
@@ -321,7 +357,9 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
             for ref in ready:
                 i = polls.pop(ref)
                 with contextlib.suppress(*lost):  # restarting: its flight call says what happened
-                    timeline.add(i, ray.get(ref).trail)
+                    status = ray.get(ref)
+                    view.seen(i, status)
+                    timeline.add(i, status.trail)
             done, _ = ray.wait(list(flights), num_returns=len(flights), timeout=0)
             for ref in done:
                 i = flights.pop(ref)
@@ -332,6 +370,7 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
                     # Unavailable: the worker died and Ray restarts the actor; asked again, the restarted
                     # actor reports the lost flight. Died: no restart is left.
                     timeline.close(i, "EMERGENCY", LOST_CAUSE)  # lost now: the fleet policy acts at once
+                    view.ended(i, "EMERGENCY")
                     waiting = restart_deadline.setdefault(i, time.monotonic() + RESTART_WAIT_S)
                     if isinstance(exc, ray.exceptions.ActorUnavailableError) and time.monotonic() < waiting:
                         retry.append(i)
@@ -349,9 +388,13 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
                     for r in last:
                         polls.pop(r, None)
                         with contextlib.suppress(Exception):
-                            timeline.add(i, ray.get(r, timeout=10.0).trail)
+                            status = ray.get(r, timeout=10.0)
+                            view.seen(i, status)  # where it ended: a drone that lands later avoids it
+                            timeline.add(i, status.trail)
                 out = results[i].outcome
                 timeline.close(i, out.state.value, out.cause if out.cause != "complete" else "")
+                view.ended(i, out.state.value)
+            view.push(actors, [r is None and i not in restart_deadline for i, r in enumerate(results)])
             timeline.feed()
             await asyncio.sleep(1.0 / POLL_HZ)
     return [r for r in results if r is not None]
@@ -367,4 +410,4 @@ def _ended(text: str, cause: str, t: float) -> FlightResult:
     return FlightResult(summary=summary, record=empty, outcome=Outcome(State.EMERGENCY, text, cause, t))
 
 
-__all__ = ["RemoteCoordinator", "Timeline", "check_resources", "radio_resource", "run_fleet_ray"]
+__all__ = ["FleetView", "RemoteCoordinator", "Timeline", "check_resources", "radio_resource", "run_fleet_ray"]
