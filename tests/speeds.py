@@ -315,6 +315,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_hybrid_mpc_equals_the_network_inside_the_graph": (SLOW,),
         "test_input_scaling_and_rotor_polytope": (SLOW,),
     },
+    "test_neighbour_input.py": FAST,
     "test_online_flight.py": FLIES,
     "test_online_gate.py": {
         "*": SPAWNS,
