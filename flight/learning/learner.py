@@ -427,7 +427,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         if not self.recorder.last_added:
             monitor.reset()  # the same ticks the windows use: airborne, flown by the MPC
             return
-        if monitor.add(tick.t, tick.est.v, tick.acc) and self._flying.model is not None:
+        if monitor.add(tick.t, tick.est.v, tick.acc, self.recorder.last_nb) and self._flying.model is not None:
             verdict = monitor.judge(self._flying.model)
             if verdict.drop:
                 self._drop(tick.t, f"model {self._flying.version} predicts the last {verdict.ticks} ticks worse than "

@@ -128,10 +128,17 @@ class WindowRecorder:
         """How many of the run's ticks have t > ``after``."""
         return self._n - int(np.searchsorted(self._t[: self._n], after, side="right"))
 
-    def fresh(self, after: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Copies of the run's ticks with t > ``after`` (all flown under the current model)."""
+    def fresh(self, after: float) -> tuple[np.ndarray, ...]:
+        """Copies of the run's ticks with t > ``after`` (all flown under the current model): (t, x, u), and the
+        neighbour's relative position when recorded."""
         k = int(np.searchsorted(self._t[: self._n], after, side="right"))
-        return self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy()
+        out = (self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy())
+        return out if self._nb is None else (*out, self._nb[k : self._n].copy())
+
+    @property
+    def last_nb(self) -> np.ndarray | None:
+        """The newest recorded tick's neighbour relative position (None: not recorded, or no tick)."""
+        return self._nb[self._n - 1] if self._nb is not None and self._n > 0 else None
 
     def _break(self) -> None:
         if self._n > self._w0:
