@@ -200,3 +200,25 @@ def test_a_model_with_the_wrong_layout_for_the_flight_is_refused_in_one_line():
     off = load_config(overrides={"controller.model": "m.knode", "fleet.size": 2, "online.enabled": True,
                                  "fleet.neighbour_input": False})
     refuse_neighbour_mismatch(off, plain_file)
+
+
+def test_the_gate_and_the_monitor_judge_with_the_recorded_relative_position():
+    from cfknode.flight.learning.gate import gate_pairs, rollout_rmse
+    from cfknode.flight.learning.monitor import mean_acceleration_error
+
+    rq = ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(9)))
+    n = 120
+    t = np.arange(n) * 0.0025
+    d = np.stack((0.1 * np.sin(8 * t), 0.05 * np.cos(5 * t), 0.5 + 0 * t), axis=1)
+    u = np.zeros((n, 3))
+    x = np.zeros((n, 6))
+    for k in range(n - 1):  # the plant is exactly nominal + the model with the neighbour at d
+        a = u[k] + rq.evaluate(x[k : k + 1], u[k : k + 1], x[k : k + 1, 0:3] + d[k])[0]
+        x[k + 1, 3:6] = x[k, 3:6] + 0.0025 * a
+        x[k + 1, 0:3] = x[k, 0:3] + 0.0025 * x[k, 3:6]
+    with_d, without = gate_pairs(t, x, u, 0.0, d), gate_pairs(t, x, u, 0.0)
+    assert with_d.nb is not None and without.nb is None
+    assert rollout_rmse(rq, with_d, 5) < 0.2 * rollout_rmse(rq, without, 5)
+    e_with = np.linalg.norm(mean_acceleration_error(rq, t, x[:, 3:6], u, d))
+    e_without = np.linalg.norm(mean_acceleration_error(rq, t, x[:, 3:6], u))
+    assert e_with < 0.2 * e_without
