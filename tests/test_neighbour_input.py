@@ -190,7 +190,8 @@ def test_windows_record_the_relative_position_and_training_takes_it():
 def test_a_model_with_the_wrong_layout_for_the_flight_is_refused_in_one_line():
     nb_file, plain_file = from_torch_queue(neighbour_queue(9)), from_torch_queue(neighbour_queue(6))
     single = load_config(overrides={"controller.model": "m.knode"})
-    fleet = load_config(overrides={"controller.model": "m.knode", "fleet.size": 2, "online.enabled": True})
+    fleet = load_config(overrides={"controller.model": "m.knode", "fleet.size": 2, "online.enabled": True,
+                                   "fleet.neighbour_input": True})
     for cfg, mf, words in ((single, nb_file, "takes the neighbour input"), (fleet, plain_file, "has no neighbour")):
         with pytest.raises(ConfigError) as err:
             refuse_neighbour_mismatch(cfg, mf)
