@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -37,6 +37,9 @@ class ModelSlot:
         self._model = model
         self.version = version
         self.swaps: list[SwapRecord] = []
+        # A fleet drone's neighbour input (flight/neighbours.py ``NeighbourFeed``; docs/fleet.md#neighbour-input):
+        # a model that takes it is linearised at the neighbour's positions over the horizon. None: none.
+        self.neighbour: Any = None
 
     @property
     def model(self) -> Linearisable | None:
@@ -46,7 +49,11 @@ class ModelSlot:
         """The affine residual at the given nodes (N, 6) and (N, 3); None when flying nominal."""
         if self._model is None:
             return None
-        c, jx, ju = self._model.linearise(x_nodes, u_nodes)
+        nb = None
+        if self.neighbour is not None and getattr(self._model, "takes_neighbour", False):
+            nb = self.neighbour.horizon(x_nodes)
+        c, jx, ju = self._model.linearise(x_nodes, u_nodes) if nb is None else \
+            self._model.linearise(x_nodes, u_nodes, nb)  # type: ignore[call-arg]
         return ResidualLinearisation(c, jx, ju)
 
     def swap(self, model: Linearisable | None, version: int, now: float) -> SwapRecord:

@@ -26,8 +26,10 @@ from torch import nn
 from cfknode.models.settings import KnodeConfig
 from cfknode.models.modelfile import (
     ACTIVATIONS,
+    INPUT_NAMES,
     N_IN,
     N_OUT,
+    NEIGHBOUR_INPUT_NAMES,
     ModelFile,
     NetworkWeights,
     Normalisation,
@@ -52,7 +54,8 @@ class ResidualNet(nn.Module):
         if activation not in ACTIVATIONS:
             raise ValueError(f"unknown activation {activation!r}; expected one of {ACTIVATIONS}")
         self.activation = activation
-        sizes = [N_IN, *hidden, N_OUT]
+        # (v, u), or (v, u, neighbour's relative position): the normalisation's width says which.
+        sizes = [len(normalisation.input_mean), *hidden, N_OUT]
         self.layers = nn.ModuleList(nn.Linear(a, b, dtype=dtype) for a, b in zip(sizes[:-1], sizes[1:]))
         gain = nn.init.calculate_gain("tanh") if activation == "tanh" else 1.0
         with torch.no_grad():
@@ -163,7 +166,8 @@ class KnodeQueue(nn.Module):
         return (p for p in self.parameters() if p.requires_grad)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Residual on v', shape (..., 3), for x (..., 6) and u (..., 3)."""
+        """Residual on v', shape (..., 3), for x (..., 6) and u (..., 3), or u (..., 6) = (command,
+        neighbour's relative position) for networks with the neighbour input."""
         z = torch.cat((x[..., 3:6], u), dim=-1)
         if not self.networks:
             return torch.zeros(z.shape[:-1] + (N_OUT,), dtype=z.dtype)
@@ -175,7 +179,7 @@ class KnodeQueue(nn.Module):
 
     def rhs(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Hybrid derivative: nominal (p' = v, v' = u) plus the residual on the v' rows only."""
-        nominal = translational_rhs(x, u, _TORCH)
+        nominal = translational_rhs(x, u[..., 0:3], _TORCH)  # the neighbour columns are the network's only
         residual = self(x, u)
         return torch.cat((nominal[..., 0:3], nominal[..., 3:6] + residual), dim=-1)
 
@@ -223,7 +227,7 @@ class TrainingResidual(nn.Module):
         return out
 
     def rhs(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        nominal = translational_rhs(x, u, _TORCH)
+        nominal = translational_rhs(x, u[..., 0:3], _TORCH)
         return torch.cat((nominal[..., 0:3], nominal[..., 3:6] + self(x, u)), dim=-1)
 
 
@@ -277,6 +281,7 @@ def from_torch_queue(
             for layer in net.layers
         )
         networks.append(NetworkWeights(layers, net.normalisation))
+    n_in = len(networks[-1].normalisation.input_mean) if networks else N_IN
     return ModelFile(
         hidden=queue.hidden,
         activation=queue.activation,
@@ -284,6 +289,7 @@ def from_torch_queue(
         networks=tuple(networks),
         training=training,
         extra=dict(extra or {}),
+        inputs=NEIGHBOUR_INPUT_NAMES if n_in > N_IN else INPUT_NAMES,
     )
 
 

@@ -13,7 +13,9 @@ Layout (format version 1):
   format version, architecture, per-network normalisation, queue weights, training
   provenance and metrics, software version, creation time and free-form ``extra``.
 
-A network maps the raw input z = (vx, vy, vz, ax, ay, az) to a residual on v' (m/s^2):
+A network maps the raw input z = (vx, vy, vz, ax, ay, az) to a residual on v' (m/s^2), or in a fleet with
+``fleet.neighbour_input`` z = (v, a, nbx, nby, nbz), the last three the relative position of the nearest
+drone above (``NEIGHBOUR_INPUT_NAMES``; ``architecture.inputs`` records which, docs/fleet.md#neighbour-input):
 r = output_scale * MLP((z - input_mean) / input_scale); the queue's residual is
 sum_j w_j r_j with w_j = e^(j + 1 - n) (newest 1, then e^-1, e^-2, ...).
 """
@@ -41,6 +43,9 @@ INPUT_NAMES = ("vx", "vy", "vz", "ax", "ay", "az")
 OUTPUT_NAMES = ("dvx", "dvy", "dvz")
 ACTIVATIONS = ("tanh", "softplus", "relu")
 N_IN = len(INPUT_NAMES)
+NEIGHBOUR_NAMES = ("nbx", "nby", "nbz")  # neighbour minus self, world frame, m
+NEIGHBOUR_INPUT_NAMES = INPUT_NAMES + NEIGHBOUR_NAMES
+INPUT_LAYOUTS = (INPUT_NAMES, NEIGHBOUR_INPUT_NAMES)
 N_OUT = len(OUTPUT_NAMES)
 
 # A header larger than this is not one of ours (ours are a few kB): refuse before parsing it.
@@ -62,8 +67,8 @@ class Normalisation:
     output_scale: np.ndarray  # (3,), > 0
 
     @classmethod
-    def identity(cls) -> Normalisation:
-        return cls(np.zeros(N_IN), np.ones(N_IN), np.ones(N_OUT))
+    def identity(cls, n_in: int = N_IN) -> Normalisation:
+        return cls(np.zeros(n_in), np.ones(n_in), np.ones(N_OUT))
 
     def to_json(self) -> dict[str, list[float]]:
         return {
@@ -119,6 +124,12 @@ class ModelFile:
     software_version: str = ""
     created: str = ""  # ISO 8601 UTC; filled by save_model when empty
     extra: Mapping[str, Any] = field(default_factory=dict)  # JSON-serialisable, e.g. the online model version
+    inputs: tuple[str, ...] = INPUT_NAMES  # or NEIGHBOUR_INPUT_NAMES: the networks' input layout
+
+    @property
+    def takes_neighbour(self) -> bool:
+        """Whether the networks take the neighbour's relative position (a fleet's ``fleet.neighbour_input``)."""
+        return len(self.inputs) > N_IN
 
     @property
     def queue_weights(self) -> np.ndarray:
@@ -148,7 +159,7 @@ def save_model(path: str | Path, model: ModelFile) -> Path:
         "architecture": {
             "hidden": list(model.hidden),
             "activation": model.activation,
-            "inputs": list(INPUT_NAMES),
+            "inputs": list(model.inputs),
             "outputs": list(OUTPUT_NAMES),
         },
         "queue_size": model.queue_size,
@@ -277,8 +288,11 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     if activation not in ACTIVATIONS:
         raise ModelFileError(f"model file {name}: unknown activation {activation!r}")
     inputs, outputs = need(arch, "inputs", "architecture."), need(arch, "outputs", "architecture.")
-    if not isinstance(inputs, list) or not isinstance(outputs, list) or (tuple(inputs), tuple(outputs)) != (INPUT_NAMES, OUTPUT_NAMES):
-        raise ModelFileError(f"model file {name}: input/output layout differs from {INPUT_NAMES} -> {OUTPUT_NAMES}")
+    if not isinstance(inputs, list) or not isinstance(outputs, list) or tuple(inputs) not in INPUT_LAYOUTS \
+            or tuple(outputs) != OUTPUT_NAMES:
+        raise ModelFileError(f"model file {name}: input/output layout differs from {INPUT_NAMES} (or with "
+                             f"{NEIGHBOUR_NAMES}) -> {OUTPUT_NAMES}")
+    n_in = len(inputs)
     queue_size = need(meta, "queue_size")
     nets_meta = need(meta, "networks")
     if not isinstance(queue_size, int) or queue_size < 1:
@@ -294,13 +308,13 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     ):
         raise ModelFileError(f"model file {name}: queue_weights disagree with e^(k-n) for {len(nets_meta)} networks")
 
-    sizes = [N_IN, *hidden, N_OUT]
+    sizes = [n_in, *hidden, N_OUT]
     expected_names: set[str] = set()
     networks = []
     for j, nm in enumerate(nets_meta):
         norm = Normalisation(
-            _vector(need(nm, "input_mean", f"networks[{j}]."), N_IN, f"networks[{j}].input_mean", name),
-            _vector(need(nm, "input_scale", f"networks[{j}]."), N_IN, f"networks[{j}].input_scale", name),
+            _vector(need(nm, "input_mean", f"networks[{j}]."), n_in, f"networks[{j}].input_mean", name),
+            _vector(need(nm, "input_scale", f"networks[{j}]."), n_in, f"networks[{j}].input_scale", name),
             _vector(need(nm, "output_scale", f"networks[{j}]."), N_OUT, f"networks[{j}].output_scale", name),
         )
         layers = []
@@ -327,6 +341,7 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
         software_version=str(need(meta, "software_version")),
         created=str(need(meta, "created")),
         extra=extra if isinstance(extra, dict) else {},
+        inputs=tuple(inputs),
     )
 
 
@@ -377,7 +392,9 @@ def _check_model(model: ModelFile, name: str) -> None:
         raise ModelFileError(f"model file {name}: unknown activation {model.activation!r}")
     if len(model.networks) > model.queue_size:
         raise ModelFileError(f"model file {name}: {len(model.networks)} networks exceed queue_size {model.queue_size}")
-    sizes = [N_IN, *model.hidden, N_OUT]
+    if tuple(model.inputs) not in INPUT_LAYOUTS:
+        raise ModelFileError(f"model file {name}: unknown input layout {tuple(model.inputs)}")
+    sizes = [len(model.inputs), *model.hidden, N_OUT]
     for j, net in enumerate(model.networks):
         if len(net.layers) != len(sizes) - 1:
             raise ModelFileError(f"model file {name}: network {j} has {len(net.layers)} layers, the architecture says {len(sizes) - 1}")
@@ -435,7 +452,10 @@ def model_summary(model: ModelFile) -> str:
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "INPUT_LAYOUTS",
     "INPUT_NAMES",
+    "NEIGHBOUR_INPUT_NAMES",
+    "NEIGHBOUR_NAMES",
     "OUTPUT_NAMES",
     "ModelFile",
     "ModelFileError",

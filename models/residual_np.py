@@ -11,7 +11,11 @@ larger product crosses OpenBLAS's multithreading threshold, which on a busy 2-co
 showed 16 ms p99 spikes; p small products stay single-threaded and took half the time.)
 
 The residual acts on v' only and its inputs are z = (v, u): the Jacobian with respect to
-position is exactly zero.
+position is exactly zero. A queue with the neighbour input (a fleet's ``fleet.neighbour_input``,
+docs/fleet.md#neighbour-input) also sees d = p_nb - p, the relative position of the drone above: the
+MPC's linearisation takes the neighbour's positions at its nodes (``nb``, known parameters), so its
+Jacobian with respect to the drone's own position is -dr/dd. Without ``nb`` (the gate, the monitor, the
+layer's re-base) d is the newest network's input mean: where the model was trained.
 """
 
 from __future__ import annotations
@@ -33,10 +37,13 @@ class StackedLayer:
 class ResidualQueue:
     """r(x, u) = sum_j w_j f_j(v, u) for a whole queue, networks stacked (numpy, float64)."""
 
-    def __init__(self, layers: tuple[StackedLayer, ...], activation: str, n_networks: int) -> None:
+    def __init__(self, layers: tuple[StackedLayer, ...], activation: str, n_networks: int,
+                 neighbour_default: np.ndarray | None = None) -> None:
         self._layers = layers
         self._activation = activation
         self.n_networks = n_networks
+        # The neighbour input's stand-in where no neighbour position is given; None: no neighbour input.
+        self.neighbour_default = neighbour_default
         # Output biases are summed once: the weighted sum over networks of constants.
         self._out_bias = layers[-1].bias.sum(axis=0) if layers else np.zeros((1, N_OUT))
 
@@ -44,6 +51,7 @@ class ResidualQueue:
     def from_model_file(cls, mf: ModelFile) -> ResidualQueue:
         if not mf.networks:
             return cls((), mf.activation, 0)
+        default = mf.networks[-1].normalisation.input_mean[N_IN:].copy() if mf.takes_neighbour else None
         w_queue = mf.queue_weights
         n_layers = len(mf.hidden) + 1
         stacked = []
@@ -70,7 +78,7 @@ class ResidualQueue:
                     bias=np.stack(bs)[:, None, :],
                 )
             )
-        return cls(tuple(stacked), mf.activation, len(mf.networks))
+        return cls(tuple(stacked), mf.activation, len(mf.networks), default)
 
     @property
     def layers(self) -> tuple[StackedLayer, ...]:
@@ -91,32 +99,40 @@ class ResidualQueue:
         """True for an empty queue (nominal model)."""
         return self.n_networks == 0
 
-    def evaluate(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Residual on v': (n, 3) for x (n, 6), u (n, 3); (3,) for single vectors."""
+    @property
+    def takes_neighbour(self) -> bool:
+        """Whether the networks take the neighbour's relative position as well (docs/fleet.md#neighbour-input)."""
+        return self.neighbour_default is not None
+
+    def evaluate(self, x: np.ndarray, u: np.ndarray, nb: np.ndarray | None = None) -> np.ndarray:
+        """Residual on v': (n, 3) for x (n, 6), u (n, 3); (3,) for single vectors. ``nb``: the
+        neighbour's world position(s) for a queue with the neighbour input (None: ``neighbour_default``)."""
         x2, u2 = np.atleast_2d(x), np.atleast_2d(u)
         n = x2.shape[0]
         if self.is_zero:
             out = np.zeros((n, N_OUT))
         else:
-            h = _inputs(x2, u2)  # (N, 6), broadcast over the network axis by matmul
+            h = self._inputs(x2, u2, nb)  # (N, n_in), broadcast over the network axis by matmul
             for layer in self._layers[:-1]:
                 h = _activate(np.matmul(h, layer.weight_t) + layer.bias, self._activation)
             out = np.matmul(h, self._layers[-1].weight_t).sum(axis=0) + self._out_bias
         return out if np.ndim(x) == 2 else out[0]
 
     def linearise(
-        self, x_nodes: np.ndarray, u_nodes: np.ndarray
+        self, x_nodes: np.ndarray, u_nodes: np.ndarray, nb: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Affine expansion at each node: r(x, u) ~= c[k] + Jx[k] @ x + Ju[k] @ u.
 
         x_nodes (N, 6), u_nodes (N, 3) -> c (N, 3), Jx (N, 3, 6), Ju (N, 3, 3); ``c`` already
-        includes -Jx x_bar - Ju u_bar, so the MPC uses the three arrays as they are.
+        includes -Jx x_bar - Ju u_bar, so the MPC uses the three arrays as they are. ``nb`` (N, 3):
+        the neighbour's world position at each node, a known parameter (queues with the neighbour
+        input; None: ``neighbour_default`` as the relative position, and no position Jacobian).
         """
         n = x_nodes.shape[0]
         jx = np.zeros((n, N_OUT, 6))
         if self.is_zero:
             return np.zeros((n, N_OUT)), jx, np.zeros((n, N_OUT, 3))
-        z = _inputs(x_nodes, u_nodes)
+        z = self._inputs(x_nodes, u_nodes, nb)
         p = self.n_networks
         # Forward pass keeping each hidden layer's activation derivative, (p, N, h).
         h = z
@@ -134,16 +150,27 @@ class ResidualQueue:
             g = np.matmul(g, self._layers[i].weight)  # (p, N*3, h_in)
             if i > 0:
                 g = (g.reshape(p, n, N_OUT, -1) * slopes[i - 1][:, :, None, :]).reshape(p, n * N_OUT, -1)
-        jz = g.sum(axis=0).reshape(n, N_OUT, N_IN)  # d r / d (v, u)
+        jz = g.sum(axis=0).reshape(n, N_OUT, z.shape[1])  # d r / d (v, u[, d])
         jx[:, :, 3:6] = jz[:, :, 0:3]
         ju = np.ascontiguousarray(jz[:, :, 3:6])
-        c = value - np.matmul(jz, z[:, :, None])[:, :, 0]
+        c = value - np.matmul(jz[:, :, 0:N_IN], z[:, 0:N_IN, None])[:, :, 0]
+        if z.shape[1] > N_IN and nb is not None:
+            # d = nb - p with nb known: dr/dp = -dr/dd, so c gains +dr/dd p_bar (held d adds nothing to x's terms).
+            jd = jz[:, :, N_IN:]
+            jx[:, :, 0:3] = -jd
+            c = c + np.matmul(jd, x_nodes[:, 0:3, None])[:, :, 0]
         return c, jx, ju
 
-
-def _inputs(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Network input z = (v, u): translation invariant, never absolute position."""
-    return np.concatenate((x[:, 3:6], u), axis=1)
+    def _inputs(self, x: np.ndarray, u: np.ndarray, nb: np.ndarray | None) -> np.ndarray:
+        """Network input z = (v, u): translation invariant, never absolute position; with the neighbour
+        input also d = nb - p (``nb`` given) or the stand-in ``neighbour_default``."""
+        if self.neighbour_default is None:
+            return np.concatenate((x[:, 3:6], u), axis=1)
+        if nb is None:
+            d = np.broadcast_to(self.neighbour_default, (x.shape[0], 3))
+        else:
+            d = np.atleast_2d(np.asarray(nb, dtype=np.float64)) - x[:, 0:3]
+        return np.concatenate((x[:, 3:6], u, d), axis=1)
 
 
 def _activate(a: np.ndarray, kind: str) -> np.ndarray:

@@ -67,6 +67,12 @@ class Window:
     x: np.ndarray
     u: np.ndarray
     version: int  # model version that flew the whole window
+    nb: np.ndarray | None = None  # (n, 3) the neighbour's relative position (docs/fleet.md#neighbour-input); None: none
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """What the networks see besides v: the command, and the neighbour's relative position when recorded."""
+        return self.u if self.nb is None else np.concatenate((self.u, self.nb), axis=1)
 
     @property
     def t0(self) -> float:
@@ -234,7 +240,7 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     from cfknode.models.training import Pairs, Segment, fit_normalisation, make_dataset, train
 
     w = request.window
-    segments = [Segment(r.t, r.x, r.u, source=f"window{r.index}") for r in (*request.replay, w)]
+    segments = [Segment(r.t, r.x, r.inputs, source=f"window{r.index}") for r in (*request.replay, w)]
     # make_dataset holds out the tail of every segment it is given, but only the newest window's
     # tail is held out for the gate: the replayed windows become a dataset of their own, all trained on.
     dataset = make_dataset(segments[-1:], settings.training.velocity_filter_hz, request.holdout_fraction)
@@ -289,7 +295,8 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
 
 def online_normalisation(fitted: Normalisation) -> Normalisation:
     """``fitted`` with its input scales raised to the online floors (see ONLINE_VELOCITY_SCALE)."""
-    floors = np.array([ONLINE_VELOCITY_SCALE] * 3 + [ONLINE_ACCELERATION_SCALE] * 3)
+    extra = len(fitted.input_scale) - 6  # the neighbour's relative position keeps its fitted scale
+    floors = np.array([ONLINE_VELOCITY_SCALE] * 3 + [ONLINE_ACCELERATION_SCALE] * 3 + [0.0] * extra)
     return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), fitted.output_scale)
 
 

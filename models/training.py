@@ -38,13 +38,16 @@ from cfknode.models.modelfile import ModelFile, Normalisation, TrainingInfo
 # standardising by that would turn sensor noise into inputs of order one.
 VELOCITY_SCALE_FLOOR = 0.25  # m/s
 ACCELERATION_SCALE_FLOOR = 0.5  # m/s^2
+# The neighbour's relative position: a wake about 6 cm wide must stay resolvable (docs/fleet.md#neighbour-input).
+NEIGHBOUR_SCALE_FLOOR = 0.05  # m
 OUTPUT_SCALE_FLOOR = 0.5  # m/s^2
 FILTER_ORDER = 2  # Butterworth order; filtfilt doubles it
 
 
 @dataclass(frozen=True)
 class Segment:
-    """A contiguous recording: t (n,), x (n, 6) = (p, v), u (n, 3) held from t[i] to t[i+1]."""
+    """A contiguous recording: t (n,), x (n, 6) = (p, v), u (n, 3) held from t[i] to t[i+1]; or u (n, 6)
+    with the neighbour's relative position beside the command (the neighbour input, docs/fleet.md#neighbour-input)."""
 
     t: np.ndarray
     x: np.ndarray
@@ -130,8 +133,8 @@ def make_dataset(
     for k, seg in enumerate(segments):
         t, x, u = (np.asarray(a, dtype=np.float64) for a in (seg.t, seg.x, seg.u))
         n = t.shape[0]
-        if t.ndim != 1 or x.shape != (n, 6) or u.shape != (n, 3):
-            raise ValueError(f"segment {k}: expected t (n,), x (n, 6), u (n, 3); got {t.shape}, {x.shape}, {u.shape}")
+        if t.ndim != 1 or x.shape != (n, 6) or u.shape not in ((n, 3), (n, 6)):
+            raise ValueError(f"segment {k}: expected t (n,), x (n, 6), u (n, 3) or (n, 6); got {t.shape}, {x.shape}, {u.shape}")
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(x)) and np.all(np.isfinite(u))):
             raise ValueError(f"segment {k}: non-finite values")
         if n < 2:
@@ -194,9 +197,10 @@ def fit_normalisation(dataset: Dataset) -> Normalisation:
     """Input mean/scale of (v, u) and an output scale from the apparent residual, with floors."""
     p = dataset.train
     z = np.concatenate((p.x0[:, 3:6], p.u), axis=1)
-    floors = np.array([VELOCITY_SCALE_FLOOR] * 3 + [ACCELERATION_SCALE_FLOOR] * 3)
+    floors = np.array([VELOCITY_SCALE_FLOOR] * 3 + [ACCELERATION_SCALE_FLOOR] * 3
+                      + [NEIGHBOUR_SCALE_FLOOR] * (p.u.shape[1] - 3))
     scale = np.maximum(z.std(axis=0), floors)
-    apparent = (p.x1[:, 3:6] - p.x0[:, 3:6]) / p.dt[:, None] - p.u  # finite-difference residual
+    apparent = (p.x1[:, 3:6] - p.x0[:, 3:6]) / p.dt[:, None] - p.u[:, 0:3]  # finite-difference residual
     out_scale = np.maximum(np.sqrt(np.mean(apparent**2, axis=0)), OUTPUT_SCALE_FLOOR)
     return Normalisation(z.mean(axis=0), scale, out_scale)
 
@@ -205,8 +209,9 @@ def nominal_prediction(p: Pairs) -> np.ndarray:
     """Exact nominal one-step prediction (p' = v, v' = u with u held)."""
     x1 = np.empty_like(p.x0)
     dt = p.dt[:, None]
-    x1[:, 0:3] = p.x0[:, 0:3] + dt * p.x0[:, 3:6] + 0.5 * dt * dt * p.u
-    x1[:, 3:6] = p.x0[:, 3:6] + dt * p.u
+    u = p.u[:, 0:3]  # without the neighbour's columns, if any
+    x1[:, 0:3] = p.x0[:, 0:3] + dt * p.x0[:, 3:6] + 0.5 * dt * dt * u
+    x1[:, 3:6] = p.x0[:, 3:6] + dt * u
     return x1
 
 

@@ -190,6 +190,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_histogram_quantiles_match_numpys_within_a_bin": FAST,
         "test_the_worst_values_and_drones_not_tracking_are_on_top": FAST,
     },
+    "test_fleet_neighbour.py": BOTH,
     "test_fleet_online.py": {
         "*": FLIES,
         "test_a_shared_trainer_answers_each_port_and_a_crash_loses_only_the_queued_rounds": SPAWNS,
@@ -316,6 +317,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_hybrid_mpc_equals_the_network_inside_the_graph": (SLOW,),
         "test_input_scaling_and_rotor_polytope": (SLOW,),
     },
+    "test_neighbour_input.py": FAST,
     "test_online_flight.py": FLIES,
     "test_online_gate.py": {
         "*": SPAWNS,

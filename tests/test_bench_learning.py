@@ -99,6 +99,7 @@ def test_the_stacked_pair_is_a_stack_fleet_of_two():
     cfg = load_config(overrides=BY_NAME["stacked pair dz=0.5 r=0.5 v=0.4"].config("online", 0, "/tmp"))
     assert cfg.fleet.size == 2 and cfg.fleet.layout == "stack" and cfg.fleet.stack_spacing == 0.5
     assert cfg.safety.fence_max[2] > cfg.trajectory.height + 0.5  # the upper drone inside the fence
+    assert cfg.fleet.neighbour_input  # the lower drone's model sees where the upper one is
 
 
 def test_pass_errors_average_each_window_around_its_pass():

@@ -88,9 +88,21 @@ def build_model_slot(cfg: Config) -> ModelSlot | None:
         model_file = load_model(ctrl.model)
     except ModelFileError as exc:
         raise ConfigError(f"refusing to fly: {exc}") from None
+    refuse_neighbour_mismatch(cfg, model_file)
     queue = ResidualQueue.from_model_file(model_file)
     refuse_implausible_model(cfg, model_file, queue)
     return ModelSlot(queue, version=1)
+
+
+def refuse_neighbour_mismatch(cfg: Config, model_file: Any) -> None:
+    """A model file whose input layout is not the one this flight feeds (docs/fleet.md#neighbour-input), in one line."""
+    fleet = cfg.fleet.size >= 2 and cfg.fleet.neighbour_input
+    if model_file.takes_neighbour and not fleet:
+        raise ConfigError(f"refusing to fly: model file {cfg.controller.model} takes the neighbour input "
+                          "(nbx, nby, nbz): it flies in a fleet with fleet.neighbour_input true")
+    if fleet and cfg.online.enabled and not model_file.takes_neighbour:
+        raise ConfigError(f"refusing to fly: model file {cfg.controller.model} has no neighbour input, which online "
+                          "learning with fleet.neighbour_input trains: set fleet.neighbour_input false")
 
 
 def refuse_implausible_model(cfg: Config, model_file: Any, queue: Any) -> None:

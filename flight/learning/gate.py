@@ -35,6 +35,7 @@ class GatePairs:
     u: np.ndarray
     dt: np.ndarray
     x1: np.ndarray
+    nb: np.ndarray | None = None  # (m, 3) the neighbour's relative position at x0 (docs/fleet.md#neighbour-input)
 
     def __len__(self) -> int:
         return int(self.dt.shape[0])
@@ -45,11 +46,12 @@ def _butter(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
     return butter(order, wn)
 
 
-def gate_pairs(t: np.ndarray, x: np.ndarray, u: np.ndarray, filter_hz: float) -> GatePairs:
+def gate_pairs(t: np.ndarray, x: np.ndarray, u: np.ndarray, filter_hz: float,
+               nb: np.ndarray | None = None) -> GatePairs:
     """Pairs from one contiguous run, low-pass filtered exactly as ``make_dataset`` filters training data.
 
     (That function lives with torch in ``cfknode.models.training``; this is its torch-free twin
-    for one gap-free segment.)
+    for one gap-free segment.) ``nb``: the neighbour's relative position at each tick, when recorded.
     """
     x, u = x.copy(), u.copy()
     n = t.shape[0]
@@ -66,7 +68,14 @@ def gate_pairs(t: np.ndarray, x: np.ndarray, u: np.ndarray, filter_hz: float) ->
     ok = dt > 0
     if ok.any():
         ok &= dt <= GAP_FACTOR * float(np.median(dt[ok]))
-    return GatePairs(x[:-1][ok], u[:-1][ok], dt[ok], x[1:][ok])
+    return GatePairs(x[:-1][ok], u[:-1][ok], dt[ok], x[1:][ok], None if nb is None else nb[:-1][ok])
+
+
+def _evaluate(model: Any, x: np.ndarray, u: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+    """``model``'s residual, with the neighbour at relative position ``d`` when it takes one and ``d`` was recorded."""
+    if d is None or not getattr(model, "takes_neighbour", False):
+        return model.evaluate(x, u)
+    return model.evaluate(x, u, x[:, 0:3] + d)
 
 
 def one_step_rmse(model: ResidualQueue | Any | None, pairs: GatePairs, constant_free: bool = False) -> float:
@@ -93,23 +102,24 @@ def rollout_rmse(model: ResidualQueue | Any | None, pairs: GatePairs, steps: int
         if starts.size == 0:
             return math.nan
 
-    def vdot(v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    def vdot(v: np.ndarray, u: np.ndarray, d: np.ndarray | None) -> np.ndarray:
         if model is None:
             return u
         x = np.empty((v.shape[0], 6))
-        x[:, 0:3] = 0.0  # the residual is translation invariant: position is not an input
+        x[:, 0:3] = 0.0  # the residual is translation invariant: position is only an input beside the neighbour's
         x[:, 3:6] = v
-        return u + model.evaluate(x, u)
+        return u + _evaluate(model, x, u, d)
 
     # p does not feed back into v', so RK4 on v alone is RK4 on the whole state for the v rows.
     v = pairs.x0[starts, 3:6]
     for k in range(steps):
         i = starts + k
         dt, u = pairs.dt[i, None], pairs.u[i]
-        k1 = vdot(v, u)
-        k2 = vdot(v + 0.5 * dt * k1, u)
-        k3 = vdot(v + 0.5 * dt * k2, u)
-        k4 = vdot(v + dt * k3, u)
+        d = None if pairs.nb is None else pairs.nb[i]  # held over the pair, as the trainer holds it
+        k1 = vdot(v, u, d)
+        k2 = vdot(v + 0.5 * dt * k1, u, d)
+        k3 = vdot(v + 0.5 * dt * k2, u, d)
+        k4 = vdot(v + dt * k3, u, d)
         v = v + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
     err = v - pairs.x1[starts + steps - 1, 3:6]
     if constant_free:
@@ -361,10 +371,10 @@ def beyond_layer(candidate: Any, current: Any | None, pairs: GatePairs,
     """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
     candidate (in its place) and the layer remove together: ``residual_check.shares(...).beyond_layer``."""
     x0 = pairs.x0
-    flying = current.evaluate(x0, pairs.u) if current is not None else 0.0
+    flying = _evaluate(current, x0, pairs.u, pairs.nb) if current is not None else 0.0
     r = (pairs.x1[:, 3:6] - x0[:, 3:6]) / pairs.dt[:, None] - pairs.u - flying
     t = np.concatenate(([0.0], np.cumsum(pairs.dt[:-1])))
-    return shares(t, r, candidate.evaluate(x0, pairs.u) - flying, *layer_hz).beyond_layer
+    return shares(t, r, _evaluate(candidate, x0, pairs.u, pairs.nb) - flying, *layer_hz).beyond_layer
 
 
 __all__ = [

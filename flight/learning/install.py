@@ -33,7 +33,8 @@ class GateRules:
     limits: GateLimits
 
 
-Fresh = tuple[np.ndarray, np.ndarray, np.ndarray]  # (t, x, u) recorded after the training window
+# (t, x, u) recorded after the training window, and the neighbour's relative position when recorded
+Fresh = tuple[np.ndarray, ...]
 
 
 def install_steps(candidate_file: ModelFile, current: Any | None, window: Window, fresh: Fresh,
@@ -45,8 +46,8 @@ def install_steps(candidate_file: ModelFile, current: Any | None, window: Window
     yield
     if not rules.gate:  # gate off is the paper: every trained model flies
         return GateVerdict(True, "", math.nan, math.nan, math.nan, math.nan, 0), candidate
-    ft, fx, fu = fresh
-    pairs = gate_pairs(ft, fx, fu, rules.filter_hz)
+    ft, fx, fu, *nb = fresh
+    pairs = gate_pairs(ft, fx, fu, rules.filter_hz, nb[0] if nb else None)
     yield
     verdict = yield from gate_steps(candidate_file, candidate, current, pairs, np.concatenate((window.x, fx)),
                                     np.concatenate((window.u, fu)), rules.limits)

@@ -86,7 +86,8 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self.log = log
         self._wall = wall
         self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time,
-                                       ground_z=settings.ground_z, min_height=settings.min_height)
+                                       ground_z=settings.ground_z, min_height=settings.min_height,
+                                       neighbour=getattr(slot, "neighbour", None))
         self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)
@@ -426,7 +427,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         if not self.recorder.last_added:
             monitor.reset()  # the same ticks the windows use: airborne, flown by the MPC
             return
-        if monitor.add(tick.t, tick.est.v, tick.acc) and self._flying.model is not None:
+        if monitor.add(tick.t, tick.est.v, tick.acc, self.recorder.last_nb) and self._flying.model is not None:
             verdict = monitor.judge(self._flying.model)
             if verdict.drop:
                 self._drop(tick.t, f"model {self._flying.version} predicts the last {verdict.ticks} ticks worse than "

@@ -43,17 +43,22 @@ class MonitorVerdict:
     ticks: int
 
 
-def mean_acceleration_error(model: Residual | None, t: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+def mean_acceleration_error(model: Residual | None, t: np.ndarray, v: np.ndarray, u: np.ndarray,
+                            nb: np.ndarray | None = None) -> np.ndarray:
     """Mean over [t0, t_end] of measured minus predicted acceleration, (3,); rectangle rule on the ticks.
 
-    Each tick's command is held until the next tick (the loop's zero-order hold).
+    Each tick's command is held until the next tick (the loop's zero-order hold). ``nb``: the neighbour's
+    relative position at each tick, for a model that takes it (docs/fleet.md#neighbour-input).
     """
     dt = np.diff(t)[:, None]
     f = u[:-1].copy()
     if model is not None:
         x = np.zeros((v.shape[0] - 1, 6))  # the residual is translation invariant: position is not an input
         x[:, 3:6] = v[:-1]
-        f += model.evaluate(x, u[:-1])
+        if nb is not None and getattr(model, "takes_neighbour", False):
+            f += model.evaluate(x, u[:-1], nb[:-1])  # type: ignore[call-arg]  # x's position is 0: nb is relative
+        else:
+            f += model.evaluate(x, u[:-1])
     span = float(t[-1] - t[0])
     return ((v[-1] - v[0]) - np.sum(dt * f, axis=0)) / span
 
@@ -67,6 +72,7 @@ class ModelMonitor:
         self._t = np.empty(self._cap)
         self._v = np.empty((self._cap, 3))
         self._u = np.empty((self._cap, 3))
+        self._nb: np.ndarray | None = None  # the neighbour's relative position, once one is given
         self._n = 0  # valid samples (<= cap)
         self._i = 0  # next write position (ring)
         self._since = 0  # ticks since the last check
@@ -75,11 +81,15 @@ class ModelMonitor:
         """A gap in the eligible ticks: the next window starts afresh."""
         self._n = self._i = self._since = 0
 
-    def add(self, t: float, v: np.ndarray, u: np.ndarray) -> bool:
-        """Record one tick; True when a check is due."""
+    def add(self, t: float, v: np.ndarray, u: np.ndarray, nb: np.ndarray | None = None) -> bool:
+        """Record one tick (``nb``: the neighbour's relative position, when recorded); True when a check is due."""
         self._t[self._i] = t
         self._v[self._i] = v
         self._u[self._i] = u
+        if nb is not None:
+            if self._nb is None:
+                self._nb = np.zeros((self._cap, 3))
+            self._nb[self._i] = nb
         self._i = (self._i + 1) % self._cap
         self._n = min(self._n + 1, self._cap)
         self._since += 1
@@ -95,7 +105,8 @@ class ModelMonitor:
         nominal = float(np.linalg.norm(mean_acceleration_error(None, t, v, u)))
         if model is None:
             return MonitorVerdict(False, nominal, nominal, self._n)
-        err = float(np.linalg.norm(mean_acceleration_error(model, t, v, u)))
+        nb = self._nb[order] if self._nb is not None else None
+        err = float(np.linalg.norm(mean_acceleration_error(model, t, v, u, nb)))
         drop = not math.isfinite(err) or err > self.s.margin * nominal + self.s.floor
         return MonitorVerdict(drop, err, nominal, self._n)
 

@@ -43,10 +43,12 @@ class WindowRecorder:
 
     def __init__(
         self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None,
-        min_height: float = MIN_HEIGHT,
+        min_height: float = MIN_HEIGHT, neighbour: Any = None,
     ) -> None:
         """``ground_z``: the floor's height; ticks within ``min_height`` of it are not recorded
-        (None: no floor rule, for a flight that starts in the air or a plant without ground)."""
+        (None: no floor rule, for a flight that starts in the air or a plant without ground).
+        ``neighbour``: a fleet drone's ``NeighbourFeed`` (flight/neighbours.py): each tick also records the
+        relative position of the drone above, and windows carry it (``Window.nb``); None: not recorded."""
         self.t_col = t_col
         self.start_time = start_time
         # A longer gap between ticks (flown blind, or by another controller) ends the run; lockstep
@@ -57,6 +59,8 @@ class WindowRecorder:
         self._x = np.empty((cap, 6))
         self._u = np.empty((cap, 3))
         self._s = np.ones(cap)  # the fast layer's thrust scale at each tick
+        self._neighbour = neighbour
+        self._nb = np.zeros((cap, 3)) if neighbour is not None else None
         self._n = 0  # ticks in the run buffer
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
@@ -96,6 +100,8 @@ class WindowRecorder:
         self._x[i, 3:6] = est.v
         self._u[i] = tick.acc
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
+        if self._nb is not None:
+            self._nb[i] = self._neighbour.relative(est.p)
         if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
             self._break()
             return None
@@ -110,8 +116,9 @@ class WindowRecorder:
             self.unsettled += 1
             return None
         self.windows += 1
+        nb = self._nb[w0 : self._n].copy() if self._nb is not None else None
         return Window(self.windows, self._t[w0 : self._n].copy(), self._x[w0 : self._n].copy(),
-                      self._u[w0 : self._n].copy(), tick.model_version)
+                      self._u[w0 : self._n].copy(), tick.model_version, nb)
 
     def reset(self) -> None:
         """A model change: the partial window (flown under the old model) is discarded."""
@@ -121,10 +128,17 @@ class WindowRecorder:
         """How many of the run's ticks have t > ``after``."""
         return self._n - int(np.searchsorted(self._t[: self._n], after, side="right"))
 
-    def fresh(self, after: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Copies of the run's ticks with t > ``after`` (all flown under the current model)."""
+    def fresh(self, after: float) -> tuple[np.ndarray, ...]:
+        """Copies of the run's ticks with t > ``after`` (all flown under the current model): (t, x, u), and the
+        neighbour's relative position when recorded."""
         k = int(np.searchsorted(self._t[: self._n], after, side="right"))
-        return self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy()
+        out = (self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy())
+        return out if self._nb is None else (*out, self._nb[k : self._n].copy())
+
+    @property
+    def last_nb(self) -> np.ndarray | None:
+        """The newest recorded tick's neighbour relative position (None: not recorded, or no tick)."""
+        return self._nb[self._n - 1] if self._nb is not None and self._n > 0 else None
 
     def _break(self) -> None:
         if self._n > self._w0:
@@ -140,6 +154,8 @@ class WindowRecorder:
         self._x[:keep] = self._x[start : self._n]
         self._u[:keep] = self._u[start : self._n]
         self._s[:keep] = self._s[start : self._n]
+        if self._nb is not None:
+            self._nb[:keep] = self._nb[start : self._n]
         self._w0 -= start
         self._n = keep
 

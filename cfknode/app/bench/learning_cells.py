@@ -105,8 +105,9 @@ class LearnCell:
             base["controller.max_tilt_deg"] = min(MAX_PLANNED_TILT_DEG, math.ceil(tilt + TILT_MARGIN_DEG))
         if self.fleet > 1:
             # The cell is about flying close under another drone: the fleet's keep-apart rule at half the spacing.
+            # Each drone's model also sees where the drone above is (docs/fleet.md#neighbour-input).
             base.update({"fleet.size": self.fleet, "fleet.layout": self.layout, "fleet.stack_spacing": self.spacing,
-                         "fleet.min_separation": min(0.3, 0.5 * self.spacing)})
+                         "fleet.min_separation": min(0.3, 0.5 * self.spacing), "fleet.neighbour_input": True})
         return {**base, **dict(self.overrides), **CONTROLLERS[controller]}
 
 

@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
         initial = load_model(args.init) if args.init else None
     except ModelFileError as exc:
         raise ConfigError(str(exc)) from None
+    if initial is not None and initial.takes_neighbour:  # logs do not pair a drone with its neighbour's positions
+        raise ConfigError(f"--init {args.init} takes the neighbour input (docs/fleet.md#neighbour-input), which "
+                          "cfknode train does not record from logs")
     dataset, held_out = dataset_for(segments, cfg, args.split)
     console.print(
         f"training on {len(dataset.train)} pairs ({len(dataset.val)} held out) from {len(segments)} segment(s), "

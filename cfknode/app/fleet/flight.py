@@ -54,6 +54,7 @@ from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
+from cfknode.flight.neighbours import NeighbourBoard
 from cfknode.kernel.setpoint import thrust_command
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
 from cfknode.safety.geofence import Geofence, clamp_reference
@@ -258,6 +259,7 @@ class _Flying:
     learners: Sequence[Any]
     ground: Sequence[float]
     coordinator: FleetCoordinator
+    board: NeighbourBoard | None = None  # the drones' positions for the neighbour input (None: off)
 
 
 def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
@@ -297,10 +299,11 @@ def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
         if on_coordinator is not None:
             on_coordinator(coordinator)
         ground = [float(d.start_position[2]) for d in drones]
+        board = neighbour_board(cfg, refs, plan.models)  # before the learners: their windows record it
         ports = list(trainers) if trainers is not None else [None] * len(drones)
         sessions = fleet_sessions([d.config for d in drones], plan.models, logs, [d.clock for d in drones], ports, ground)
         with sessions as learners:
-            flying = _Flying(plan, drones, flog, sups, logs, learners, ground, coordinator)
+            flying = _Flying(plan, drones, flog, sups, logs, learners, ground, coordinator, board)
             results = _fly_drones(cfg, flying, handback, dashboard)
         closest = true_min_separation([r.record for r in results])
         t_end = max((r.record.t[-1] for r in results if r.record.ticks), default=0.0)
@@ -335,9 +338,10 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
         if learners[i] is not None:
             controller.observers.append(learners[i])
         flog.follow_plan(names[i], lambda c=controller: c.predicted_positions)
+        taps = [flying.board.tap(i)] if flying.board is not None else []
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
-                                 observers=[coordinator.tap(i), *d.fault_observers(model)], estop=box,
+                                 observers=[coordinator.tap(i), *taps, *d.fault_observers(model)], estop=box,
                                  signals=False))
     for i, (d, p) in enumerate(zip(drones, parts) if dashboard is not None else ()):
         p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
@@ -379,6 +383,19 @@ async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
 
     with stop_signal_handler(coordinator):
         return list(await asyncio.gather(*(one(d, p) for d, p in zip(drones, parts))))
+
+
+def neighbour_board(cfg: Config, refs: Sequence[HoldableReference], slots: Sequence[Any]) -> NeighbourBoard | None:
+    """With ``fleet.neighbour_input``, the board every drone's model slot reads its neighbour input from
+    (docs/fleet.md#neighbour-input); None when it is off or no drone flies a model."""
+    if not cfg.fleet.neighbour_input or all(s is None for s in slots):
+        return None
+    c = cfg.controller
+    board = NeighbourBoard(refs, 1.0 / c.rate_hz, c.dt, c.horizon)
+    for i, slot in enumerate(slots):
+        if slot is not None:
+            slot.neighbour = board.feed(i)
+    return board
 
 
 def true_min_separation(records: Sequence[FlightRecord]) -> float:

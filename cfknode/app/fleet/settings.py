@@ -27,5 +27,7 @@ class FleetConfig:
     drones_per_sim_radio: int = setting(unit="drones", low=1, high=16,
         doc="sim://N shares simulated radio N // 2 (the budget applies to it as to a real one)")
     name_prefix: str = setting(doc="drones cf1, cf2, ...: log channels /cf1/state, e-stop names sim-cf1")
+    neighbour_input: bool = setting(
+        doc="online learning: each drone's model also sees where the nearest drone above is (docs/fleet.md#neighbour-input)")
     ray_radio_resource: str = setting(
         doc="--executor ray: the Ray resource of the node with the drone's radio (docs/fleet-ray.md)")
