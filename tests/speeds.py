@@ -376,6 +376,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_jacobians_match_autograd": (SLOW,),
         "test_module_imports_without_torch": (PROCESS,),
     },
+    "test_residual_split.py": FAST,
     "test_rosbag_data.py": FAST,
     "test_robots.py": FAST,
     "test_safety_geofence.py": FAST,
