@@ -269,6 +269,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_constant_command_moves_the_state_by_the_kinematics": FAST,
         "test_estimator_owns_the_predictor_and_reset_clears_it": FAST,
         "test_no_delay_returns_the_estimate_itself": FAST,
+        "test_the_layer_and_the_observers_see_the_measured_state_while_the_mpc_plans_ahead": FAST,
         "test_only_the_commands_in_flight_count": FAST,
     },
     "test_learner_with_layer.py": FLIES,
