@@ -189,7 +189,7 @@ class Controller:
 
     def step(
         self, t: float, state: State, reference: Any, *, force_fallback: bool = False, pose_fresh: bool = True,
-        phase: str = "TRACK",
+        phase: str = "TRACK", observed: State | None = None,
     ) -> Command:
         """The command for time ``t`` from ``state``, tracking ``reference``.
 
@@ -199,7 +199,11 @@ class Controller:
         warm start stays what it was in flight. For the fast adaptation layer: ``pose_fresh``
         (a new mocap frame arrived for this state; stale ones freeze the layer) and ``phase``
         (the supervisor's state: "LAND" freezes the layer, "IDLE"/"LANDED"/"EMERGENCY" reset it).
+        ``observed``: the estimate as measured when ``state`` is a prediction ahead of it (the command delay,
+        flight/latency.py): the MPC plans from ``state``, but the layer, the fall guard and the observers (the
+        online learner's data) compare the vehicle with what it did, so they take the measured one.
         """
+        obs = state if observed is None else observed
         start = time.perf_counter()
         if self._ground_z is None:
             self._guess_ground(float(state.p[2]))
@@ -208,18 +212,18 @@ class Controller:
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
         adapt = self.adaptation
         if adapt is not None:
-            adapt.before_solve(t, state, pose_fresh, phase, self.model)
+            adapt.before_solve(t, obs, pose_fresh, phase, self.model)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
         acc, ok, solve_s, source, status, model_residual = self._acceleration(
             state, ref, force_fallback, thrust_limit)
         shaping = adapt.shaping() if adapt is not None else None
-        guarding = self._guarding(state, ref, phase)
+        guarding = self._guarding(obs, ref, phase)
         if guarding:  # the clamp, the horizontal within the reserve's lean (the Mellinger layer's cone)
             acc, shaping = guard_acceleration(acc, self.vehicle, self.settings.cone_reserve_deg), CommandShaping()
         shaped = shape_force(acc, self.vehicle, self.settings, shaping)
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
         if adapt is not None:
-            adapt.after_command(np.concatenate((state.p, state.v)), shaped, setpoint.thrust, model_residual)
+            adapt.after_command(np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
         if self.fall_guard is not None:
             self.fall_guard.sent(setpoint.thrust * self.vehicle.newton_per_cmd)
         # From the command actually sent, on every path: a cut tick's motion is the limit's, not the model's.
@@ -228,7 +232,7 @@ class Controller:
                           adapt.estimate if adapt is not None else None, guarding)
         if self.observers:
             version = self.model.version if self.model is not None else 0
-            self._pending = TickInfo(t, state, ref.p[0], ref.v[0], acc, setpoint, source,
+            self._pending = TickInfo(t, obs, ref.p[0], ref.v[0], acc, setpoint, source,
                                      time.perf_counter() - start, solve_s, False, version, saturated=saturated,
                                      layer=adapt.estimate if adapt is not None else None, guarded=guarding)
         return command

@@ -66,3 +66,42 @@ def test_a_flight_with_command_delay_compensation_tracks(tmp_path):
     res = run_flight(load_config(overrides=short), name_hint="delay")
     assert res.outcome.message.startswith("flight complete")
     assert res.summary.mse < 5e-4
+
+
+def test_the_layer_and_the_observers_see_the_measured_state_while_the_mpc_plans_ahead():
+    # With estimator.command_delay the MPC plans from the state predicted ahead (flight/latency.py); the fast
+    # layer and the online learner compare the vehicle with what it did, so they must get the measured one.
+    # (Fed the prediction, the layer read the prediction's error as a disturbance: on a fast loop its offset
+    # swung +-0.8 m/s^2 and it flew 3.2x nominal MPC's error, docs/results.md.)
+    import cfknode
+
+    cfg = load_config(overrides={"controller.adaptation": "dob"})
+    ctrl = cfknode.Controller(cfg.controller, cfg.vehicle, ground_z=0.0)
+    seen, ticks = [], []
+    before = ctrl.adaptation.before_solve
+
+    def spy(now, est, *args):
+        seen.append(est)
+        return before(now, est, *args)
+
+    ctrl.adaptation.before_solve = spy
+
+    class Observer:
+        def on_tick(self, tick):
+            ticks.append(tick)
+
+    ctrl.observers.append(Observer())
+    measured = _est(0.0, v=(0.5, 0.0, 0.0))
+    ahead = _est(0.0, p=(0.075, 0.0, 1.0), v=(0.8, 0.0, 0.0))
+    hover = cfknode.RefSamples(ctrl.preview_times(0.0), np.tile([0.0, 0.0, 1.0], (cfg.controller.horizon + 1, 1)),
+                               np.zeros((cfg.controller.horizon + 1, 3)), np.zeros((cfg.controller.horizon + 1, 3)),
+                               np.zeros(cfg.controller.horizon + 1))
+    planned = ctrl.step(0.0, ahead, hover, observed=measured)
+    ctrl.publish()
+    assert seen == [measured] and ticks[0].est is measured
+    # The plan is the ahead state's: the same step without a prediction plans differently.
+    plain = cfknode.Controller(cfg.controller, cfg.vehicle, ground_z=0.0).step(0.0, measured, hover)
+    assert not np.allclose(planned.acc, plain.acc)
+    # Without ``observed`` the state is both (no delay: the flight is unchanged).
+    ctrl.step(0.0025, measured, hover)
+    assert seen[-1] is measured
