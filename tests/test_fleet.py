@@ -261,7 +261,7 @@ def test_with_downwash_the_lower_of_two_stacked_drones_sags(tmp_path):
     # The plain MPC shows the wake's push; the fast layer (on by default) would take it out (docs/fleet.md).
     over = {"fleet.layout": "stack", "trajectory.duration": 2.0, "controller.adaptation": "none"}
     off = run_fleet(fleet_cfg(tmp_path, **over))
-    on = run_fleet(fleet_cfg(tmp_path, **over, **{"sim.downwash.enabled": True}))
+    on = run_fleet(fleet_cfg(tmp_path, **over, **{"sim.aero": "ideal", "sim.downwash.enabled": True}))
     assert off.complete and on.complete
 
     def z_error(result, k):
