@@ -65,7 +65,7 @@ class Command:
 
     acc: np.ndarray  # commanded world acceleration [m/s^2] (the model's input u)
     setpoint: AttitudeSetpoint  # what cflib's send_setpoint takes
-    source: str  # "mpc" | "fallback" (the MPC failed or was late) | "geometric" (no MPC)
+    source: str  # "mpc" | "fallback" (the MPC failed or was late) | "geometric" (no MPC) | "brake" (the fence brake)
     status: str  # "ok", the solver's status, or "deadline"
     solve_s: float  # the MPC's own solve time (0 without an MPC)
     ok: bool  # the MPC's answer flew (or the geometric controller, when it is the controller)
@@ -87,7 +87,7 @@ class TickInfo:
     ref_v: np.ndarray
     acc: np.ndarray  # commanded world acceleration (the model's input u)
     setpoint: AttitudeSetpoint
-    source: str  # "mpc" | "fallback" | "geometric" | "blind" | "cutoff" | "stop" | "no_state" | "refused"
+    source: str  # "mpc" | "fallback" | "geometric" | "brake" | "blind" | "cutoff" | "stop" | "no_state" | "refused"
     compute_s: float
     solve_s: float
     missed: bool
@@ -189,7 +189,7 @@ class Controller:
 
     def step(
         self, t: float, state: State, reference: Any, *, force_fallback: bool = False, pose_fresh: bool = True,
-        phase: str = "TRACK", observed: State | None = None,
+        phase: str = "TRACK", observed: State | None = None, brake_tilt_deg: float | None = None,
     ) -> Command:
         """The command for time ``t`` from ``state``, tracking ``reference``.
 
@@ -202,6 +202,9 @@ class Controller:
         ``observed``: the estimate as measured when ``state`` is a prediction ahead of it (the command delay,
         flight/latency.py): the MPC plans from ``state``, but the layer, the fall guard and the observers (the
         online learner's data) compare the vehicle with what it did, so they take the measured one.
+        ``brake_tilt_deg``: the supervisor's fence brake (source "brake"): the MPC still solves, so its warm start
+        stays current, but the geometric law flies, less the layer's offset, tilted up to this many degrees
+        (see ``_brake``).
         """
         obs = state if observed is None else observed
         start = time.perf_counter()
@@ -215,13 +218,17 @@ class Controller:
             adapt.before_solve(t, obs, pose_fresh, phase, self.model)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
         acc, ok, solve_s, source, status, model_residual = self._acceleration(
-            state, ref, force_fallback, thrust_limit)
+            state, ref, force_fallback or brake_tilt_deg is not None, thrust_limit)
+        settings = self.settings
+        if brake_tilt_deg is not None:
+            acc, ok, source, status = self._brake(state, ref), True, "brake", "ok"
+            settings = dataclasses.replace(settings, max_tilt_deg=brake_tilt_deg)
         shaping = adapt.shaping() if adapt is not None else None
         guarding = self._guarding(obs, ref, phase)
         if guarding:  # the clamp, the horizontal within the reserve's lean (the Mellinger layer's cone)
             acc, shaping = guard_acceleration(acc, self.vehicle, self.settings.cone_reserve_deg), CommandShaping()
-        shaped = shape_force(acc, self.vehicle, self.settings, shaping)
-        setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, self.settings)
+        shaped = shape_force(acc, self.vehicle, settings, shaping)
+        setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, settings)
         if adapt is not None:
             adapt.after_command(np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
         if self.fall_guard is not None:
@@ -288,6 +295,16 @@ class Controller:
             return sol.acc, True, sol.solve_time, "mpc", "ok", model_residual
         status = sol.status if not sol.ok else "deadline"
         return self._geometric(state, ref), False, sol.solve_time, "fallback", status, model_residual
+
+    def _brake(self, state: State, ref: RefSamples) -> np.ndarray:
+        """The fence brake's acceleration: the geometric law (firmware Mellinger gains), less the fast layer's
+        offset (the disturbance it has measured). The MPC's horizontal box is compiled at
+        ``controller.max_tilt_deg``: a gust that takes all of it pushes the vehicle on however the MPC plans, and
+        only a steeper tilt brings it back, which this law may use in full."""
+        acc = self._geometric(state, ref)
+        if self.adaptation is not None:
+            acc = acc - np.asarray(self.adaptation.estimate.offset, dtype=float)
+        return acc
 
     def _geometric(self, state: State, ref: RefSamples) -> np.ndarray:
         return geometric_acc(state.p, state.v, ref.p[0], ref.v[0], ref.a[0], self.gains)

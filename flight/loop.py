@@ -315,7 +315,8 @@ class _Loop:
                     if ref is tick.samples and self.held is None:
                         plan_ref = self.traj.sample(controller.preview_times(now + delay))
                 command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
-                                          phase=self.sup.state.value, observed=est)
+                                          phase=self.sup.state.value, observed=est,
+                                          brake_tilt_deg=self.sup.brake_tilt_deg)
                 tick.adapted = controller.adaptation is not None
             except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
                 self.controller_failed = True

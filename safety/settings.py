@@ -21,6 +21,8 @@ class SafetyConfig:
         doc="the reference is clamped this far inside the box (not at the floor)")
     fence_stop_distance: float = setting(unit="m", low=0, high=5, open_low=True,
         doc="m outside the box: stop the motors instead of landing")
+    fence_brake_tilt_deg: float = setting(unit="deg", low=5, high=60,
+        doc="tilt the landing after a fence crossing may use until back inside the soft box (docs/design.md#safety)")
     mocap_hold_s: float = setting(unit="s", low=0, high=1, open_low=True,
         doc="s without a mocap frame: level out and sink (50-100 ms: docs/hardware.md#host-safety)")
     mocap_stop_s: float = setting(unit="s", low=0, high=5, open_low=True, doc="s without a frame: stop the motors")

@@ -183,6 +183,13 @@ class Supervisor(OperatorRequests, SlowInputs):
         return self._state
 
     @property
+    def brake_tilt_deg(self) -> float | None:
+        """The fence brake's tilt for the controller while a landing for a fence crossing is outside the soft box
+        (docs/design.md#safety; the margin is to the hard box, whose floor is not inset), else None."""
+        braking = self._state is State.LAND and self._cause == "fence" and self._fence_margin < self.fence.margin
+        return self.config.fence_brake_tilt_deg if braking else None
+
+    @property
     def deadlines_apply(self) -> bool:
         return self._deadlines
 

@@ -80,7 +80,7 @@ class SimConfig:
         doc="std per accelerometer sample and axis (acc.x/y/z) (docs/hardware.md#imu-log)")
     imu_bias: Vec3 = setting((0.0, 0.0, 0.0), unit="m/s^2", low=-2, high=2,
         doc="constant offset of acc.x/y/z, body frame; a BMI088's zero-g offset is up to 0.2 (docs/hardware.md#imu-log)")
-    aero: Literal["ideal", "realistic"] = setting("ideal",
+    aero: Literal["ideal", "realistic"] = setting("realistic",
         doc="ideal: rigid body, lagged motors, drag and wind above | realistic: plus aero_terms")
     aero_terms: AeroTerms = AeroTerms()
 

@@ -165,6 +165,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_failing_solver_and_nan_model": FAST,
         "test_gust_vehicle_blows_only_during_the_gust": FAST,
         "test_radio_blackout_loses_packets_in_its_window_and_the_link_after_100": FAST,
+        "test_the_fence_brake_flies_the_geometric_law_at_its_steeper_tilt": (SLOW,),
     },
     "test_fleet.py": {
         "*": FLIES,
@@ -486,7 +487,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_robot_links.py": FAST,
     "test_sim_aero.py": FAST,
     "test_sim_fast_force.py": FAST,
-    "test_sim_ideal_plant.py": FAST,
+    "test_sim_ideal_plant.py": {
+        "*": FAST,
+        "test_the_default_mission_on_the_ideal_plant_flies_its_recorded_mse_to_the_bit": FLIES,
+    },
     "test_sim_realistic_flight.py": FLIES,
     "test_stale_setpoint.py": FAST,
     "test_stall_estop.py": BOTH,

@@ -14,7 +14,7 @@ from cfknode.app.logs.reader import read_log
 # paper's method (no fast layer): beside the layer a mass is the layer's, and nothing is left to learn.
 ONLINE_FLEET = {
     "controller.adaptation": "none",
-    "fleet.size": 2, "fleet.layout": "stack", "sim.downwash.enabled": True,
+    "fleet.size": 2, "fleet.layout": "stack", "sim.aero": "ideal", "sim.downwash.enabled": True,
     "trajectory.duration": 2.5, "trajectory.takeoff_duration": 1.5, "trajectory.settle_duration": 0.5,
     "trajectory.land_duration": 1.5, "dashboard.enabled": False,
     "sim.mass_changes": [{"t": 2.5, "factor": 1.3}],

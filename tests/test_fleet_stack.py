@@ -189,7 +189,7 @@ def test_a_ray_actors_gate_judges_by_the_fleet_the_driver_last_told_it(tmp_path)
 
 def test_a_fault_below_never_lands_the_upper_drone_onto_the_lower(tmp_path):
     """cf1 loses the mocap under cf2 and lands; land_all lands cf2, which glides clear first."""
-    cfg = stack_cfg(tmp_path, size=2, **{"trajectory.duration": 3.0, "sim.downwash.enabled": True,
+    cfg = stack_cfg(tmp_path, size=2, **{"trajectory.duration": 3.0, "sim.aero": "ideal", "sim.downwash.enabled": True,
                                         "faults.mocap_outages": [{"t": 2.5, "duration": 1.0}]})
     result = run_fleet(cfg)
     causes = [d.outcome.cause for d in result.drones]
@@ -262,7 +262,7 @@ def test_a_stop_mid_flight_lands_a_stack_of_three_without_one_drone_passing_anot
 
     from cfknode.app.commands.estop_all import estop_all
 
-    cfg = stack_cfg(tmp_path, **{"trajectory.height": 0.7, "trajectory.duration": 3.0, "sim.downwash.enabled": True})
+    cfg = stack_cfg(tmp_path, **{"trajectory.height": 0.7, "trajectory.duration": 3.0, "sim.aero": "ideal", "sim.downwash.enabled": True})
     if stop == "sigint":
         send = lambda: os.kill(os.getpid(), signal.SIGINT)  # noqa: E731
         cause = "sigint"

@@ -161,6 +161,19 @@ def test_crossing_the_hard_fence_lands_inside_the_soft_box():
     assert ref.p[0, 0] == pytest.approx(1.3)  # landing held at the soft box (1.5 - 0.2 m margin)
     assert ref.p[-1, 2] < 1.0 and np.all(np.diff(ref.p[:, 2]) <= 1e-12)
     assert rig.sup.outcome().cause == "fence"
+    # The fence brake: the steeper tilt until the drone is back inside the soft box, then the usual one.
+    assert rig.sup.brake_tilt_deg == rig.cfg.safety.fence_brake_tilt_deg == 45.0
+    rig.tick(p=[1.35, 0.0, 1.0])
+    assert rig.sup.brake_tilt_deg == 45.0
+    rig.tick(p=[1.25, 0.0, 1.0])
+    assert rig.sup.brake_tilt_deg is None and rig.sup.state is State.LAND
+
+
+def test_no_fence_brake_outside_a_landing_for_the_fence():
+    rig = Rig()
+    rig.to_track()
+    rig.tick(p=[1.4, 0.0, 1.0])  # in the margin, not across the fence: tracked as usual
+    assert rig.sup.state is State.TRACK and rig.sup.brake_tilt_deg is None
 
 
 def test_far_outside_the_fence_stops_the_motors():

@@ -39,11 +39,11 @@ def _accel(vehicle_overrides: dict, z: float = 1.0, v=(0.0, 0.0, 0.0), q=(1.0, 0
     return d[3], d[4], d[5]
 
 
-def test_the_default_is_the_ideal_plant_and_realistic_selects_the_aero_vehicle():
+def test_the_default_is_the_realistic_plant_and_ideal_selects_the_rigid_body():
     cfg = load_config()
-    assert cfg.sim.aero == "ideal" and type(make_vehicle(cfg.vehicle, cfg.sim)) is Vehicle
-    real = load_config(overrides={"sim.aero": "realistic"})
-    assert isinstance(make_vehicle(real.vehicle, real.sim), AeroVehicle)
+    assert cfg.sim.aero == "realistic" and isinstance(make_vehicle(cfg.vehicle, cfg.sim), AeroVehicle)
+    ideal = load_config(overrides={"sim.aero": "ideal"})
+    assert type(make_vehicle(ideal.vehicle, ideal.sim)) is Vehicle
 
 
 def test_every_term_at_zero_is_the_ideal_plant_to_the_bit():
@@ -127,7 +127,7 @@ def test_ground_effect_lets_a_vehicle_leave_the_floor_a_little_below_its_weight(
             vehicle.step([cmd] * 4, cfg.vehicle.mass)
         return not vehicle.on_ground
 
-    assert lifts(_terms(ground_effect=1.0)) and not lifts({}) and not lifts(_terms())
+    assert lifts(_terms(ground_effect=1.0)) and not lifts({"sim.aero": "ideal"}) and not lifts(_terms())
 
 
 # ----------------------------------------------------------------------------- downwash

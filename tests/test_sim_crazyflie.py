@@ -23,6 +23,8 @@ def _parts(cfg):
 
 def make_sim(z: float = 0.0, airborne_hover: bool = False, **overrides) -> SimCrazyflie:
     overrides.setdefault("sim.initial_position", [0.0, 0.0, z])
+    # Signs and timings are checked on the rigid body; the realistic plant's terms have their own tests.
+    overrides.setdefault("sim.aero", "ideal")
     sim = SimCrazyflie(*_parts(load_config(overrides=overrides)))
     if airborne_hover:
         f = sim.mass * sim.vehicle_config.gravity / 4.0

@@ -23,7 +23,7 @@ TX = 0.01
 # (duration s, roll deg, pitch deg, yaw rate deg/s, thrust as a fraction of the hover command)
 PHASES = ((0.02, 0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 0.0, 0.0, 1.2), (0.4, 6.0, -4.0, 30.0, 0.95),
           (0.5, -5.0, 8.0, -40.0, 0.9), (0.4, 0.0, 0.0, 0.0, 0.9), (1.3, 0.0, 0.0, 0.0, 0.75))
-OVERRIDES = {"sim.drag": [0.004, 0.005, 0.003], "sim.wind": [0.6, -0.4, 0.1],
+OVERRIDES = {"sim.aero": "ideal", "sim.drag": [0.004, 0.005, 0.003], "sim.wind": [0.6, -0.4, 0.1],
              "sim.mass_changes": [{"t": 1.2, "factor": 1.1}]}
 
 
@@ -54,6 +54,15 @@ def test_the_ideal_plant_reproduces_the_recorded_trajectory_bit_for_bit():
     for i, (a, b) in enumerate(zip(kept, want["kept"])):
         assert a == b, f"the plants part by t = {0.1 * (i + 1):.1f} s"
     assert digest == want["sha256"]
+
+
+def test_the_default_mission_on_the_ideal_plant_flies_its_recorded_mse_to_the_bit(tmp_path):
+    """The README's first command on the ideal plant (`--set sim.aero=ideal`, the paper-protocol plant) flies the
+    MSE it flew when that plant was the default (docs/results.md#default-mission)."""
+    from cfknode.app.mission import run_flight
+
+    cfg = load_config(overrides={"sim.aero": "ideal", "log.dir": str(tmp_path), "safety.estop_dir": str(tmp_path)})
+    assert run_flight(cfg).summary.mse == 2.581807478719663e-06
 
 
 def test_the_recorded_flight_leaves_the_ground_manoeuvres_and_lands():

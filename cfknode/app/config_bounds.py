@@ -166,6 +166,9 @@ def tilt_order(cfg: Config) -> str | None:
     if cfg.controller.max_tilt_deg >= cfg.safety.max_tilt_deg:
         return (f"controller.max_tilt_deg = {cfg.controller.max_tilt_deg:g} deg must be below "
                 f"safety.max_tilt_deg = {cfg.safety.max_tilt_deg:g} deg (the tumble limit)")
+    if cfg.safety.fence_brake_tilt_deg >= cfg.safety.max_tilt_deg:
+        return (f"safety.fence_brake_tilt_deg = {cfg.safety.fence_brake_tilt_deg:g} deg must be below "
+                f"safety.max_tilt_deg = {cfg.safety.max_tilt_deg:g} deg (the tumble limit)")
     return None
 
 

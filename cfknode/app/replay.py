@@ -48,7 +48,7 @@ COMMAND_FIELDS: tuple[tuple[str, str], ...] = (
     ("acc_x", "m/s^2"), ("acc_y", "m/s^2"), ("acc_z", "m/s^2"),
     ("roll_deg", "deg"), ("pitch_deg", "deg"), ("yawrate_deg", "deg/s"), ("thrust", "cmd"),
 )
-CONTROLLER_SOURCES = ("mpc", "fallback", "geometric")
+CONTROLLER_SOURCES = ("mpc", "fallback", "geometric", "brake")
 
 
 class ReplayError(ValueError):
@@ -200,7 +200,8 @@ def replay_log(
         # A tick that fell back in flight while the replayed solve succeeds missed its deadline
         # on the wall clock: it is flown as the flight flew it (geometric).
         command = controller.step(t, est, ref, force_fallback=source == "fallback",
-                                  pose_fresh=bool(state.get("fresh", True)), phase=str(state.get("phase") or "TRACK"))
+                                  pose_fresh=bool(state.get("fresh", True)), phase=str(state.get("phase") or "TRACK"),
+                                  brake_tilt_deg=cfg.safety.fence_brake_tilt_deg if source == "brake" else None)
         followed += source == "fallback" and command.status == "deadline"
         acc, sp = command.acc, command.setpoint
         rows_t.append(t)
