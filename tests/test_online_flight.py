@@ -184,17 +184,20 @@ def test_nan_candidate_is_rejected_by_the_gate(faulty: Flight) -> None:
 
 def test_trainer_crash_restarts_and_the_flight_goes_on(faulty: Flight) -> None:
     s = faulty.summary.extra
-    assert s["trainer_crashes"] == 1 and s["trainer_hangs"] == 1 and s["trainer_restarts"] == 2
+    # The injected hang is found by a wall-clock timeout (a hung process has no other sign), so on a loaded
+    # machine a slow round may time out too: every such extra is a hang, restarted, never a crash.
+    assert s["trainer_crashes"] == 1 and s["trainer_hangs"] >= 1
+    assert s["trainer_restarts"] == s["trainer_crashes"] + s["trainer_hangs"]
     assert not s["trainer_failed"]
-    lost = [r for r in faulty.learner.rounds if r.outcome == "lost"]
-    assert [r.round for r in lost] == [2, 4]
-    assert "exited" in lost[0].reason and "trainer_timeout" in lost[1].reason
-    # Between the faults the restarted trainer trained round 3 as usual.
-    third = next(r for r in faulty.learner.rounds if r.round == 3)
-    assert third.outcome in ("swap", "reject") and third.train_wall_s > 0
+    lost = {r.round: r.reason for r in faulty.learner.rounds if r.outcome == "lost"}
+    assert "exited" in lost[2] and "trainer_timeout" in lost[4]
+    assert all("trainer_timeout" in why for k, why in lost.items() if k != 2)
+    # After the crash the restarted trainer trained a round as usual (round 3 unless load timed it out).
+    third = next(r for r in faulty.learner.rounds if r.round > 2 and r.outcome in ("swap", "reject"))
+    assert third.train_wall_s > 0
     log = read_log(faulty.summary.log_path)
     events = [m["event"] for m in log.topic("/model")]
-    assert events.count("crash") == 2 and events.count("restart") == 2
+    assert events.count("crash") == events.count("restart") == s["trainer_restarts"]
     ready = [e for e in log.topic("/events") if e.get("source") == "online" and "trainer ready" in e["text"]]
     assert ready and ready[0]["t"] <= third.sent_t  # the crash restart came up (the hang's may outlast the flight)
     assert faulty.summary.extra["fallback_ticks"] == 0  # the flight never noticed
