@@ -7,7 +7,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 from cfknode.app.config import ConfigError, load_config
 from cfknode.app.mission import refuse_neighbour_mismatch
@@ -19,26 +18,16 @@ from cfknode.models.modelfile import (
     INPUT_NAMES,
     NEIGHBOUR_INPUT_NAMES,
     ModelFileError,
-    Normalisation,
     load_model,
     save_model,
 )
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.training import Segment, fit_normalisation, make_dataset, train_new_model
+from test_residual_np import random_queue
 
 
 def neighbour_queue(n_in: int = 9, seed: int = 0) -> KnodeQueue:
-    rng = np.random.default_rng(seed)
-    norm = Normalisation(rng.normal(size=n_in) * 0.2, rng.uniform(0.3, 2.0, n_in), rng.uniform(0.5, 2.0, 3))
-    q = KnodeQueue((16, 16), "tanh", 3, norm, seed=seed)
-    gen = torch.Generator().manual_seed(seed)
-    for _ in range(2):
-        net = q.push()
-        with torch.no_grad():
-            for layer in net.layers:
-                layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen, dtype=torch.float64) * 0.5)
-                layer.bias.copy_(torch.randn(layer.bias.shape, generator=gen, dtype=torch.float64) * 0.3)
-    return q
+    return random_queue(2, "tanh", (16, 16), 3, seed, n_in=n_in)
 
 
 def points(n: int = 7, seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

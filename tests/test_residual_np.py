@@ -14,9 +14,11 @@ from cfknode.models.modelfile import Normalisation
 from cfknode.models.residual_np import ResidualQueue
 
 
-def random_queue(n: int, activation: str, hidden: tuple[int, ...] = (32, 32), queue_size: int = 3, seed: int = 0) -> KnodeQueue:
+def random_queue(n: int, activation: str, hidden: tuple[int, ...] = (32, 32), queue_size: int = 3, seed: int = 0,
+                 n_in: int = 6) -> KnodeQueue:
+    """``n`` networks of random weights; ``n_in`` inputs (9 with the neighbour input)."""
     rng = np.random.default_rng(seed)
-    norm = Normalisation(rng.normal(size=6) * 0.3, rng.uniform(0.3, 3.0, 6), rng.uniform(0.5, 3.0, 3))
+    norm = Normalisation(rng.normal(size=n_in) * 0.3, rng.uniform(0.3, 3.0, n_in), rng.uniform(0.5, 3.0, 3))
     q = KnodeQueue(hidden, activation, queue_size, norm, seed=seed)
     gen = torch.Generator().manual_seed(seed)
     for _ in range(n):
