@@ -18,7 +18,7 @@ import pytest
 from cfknode.app.fleet.robots import run_robot_fleet
 from cfknode.kernel.setpoint import thrust_command
 from cfknode.sim_backend.link_driver import lookup
-from test_fleet_robots import SHORT, cfg_for, write_robots
+from test_fleet_robots import cfg_for, write_robots
 
 pytestmark = [pytest.mark.flight, pytest.mark.process, pytest.mark.slow]  # as tests/speeds.py gives them
 
