@@ -275,6 +275,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_layer_and_the_observers_see_the_measured_state_while_the_mpc_plans_ahead": FAST,
         "test_only_the_commands_in_flight_count": FAST,
     },
+    "test_layer_held_floor.py": FAST,
     "test_learner_with_layer.py": FLIES,
     "test_link_driver.py": FAST,
     "test_log_memory.py": FLIES,

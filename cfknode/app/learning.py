@@ -102,24 +102,31 @@ def learner_settings(
         ground_z=ground_z,
         min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
+        held_limits=gate_limits(cfg, speed, layer_live=False) if beside_layer(cfg) else None,
     )
 
 
-def gate_limits(cfg: Config, speed: float | None = None) -> GateLimits:
+def beside_layer(cfg: Config) -> bool:
+    """Whether models fly beside a fast layer that estimates an additive offset."""
+    return cfg.controller.adaptation in ("dob", "l1")
+
+
+def gate_limits(cfg: Config, speed: float | None = None, layer_live: bool = True) -> GateLimits:
     """The gate's plausibility limits on the MPC's operating envelope: its input box, and velocities up to
-    ``speed`` (m/s; None: twice the fastest axis of the data it judges, plus 0.5 m/s)."""
+    ``speed`` (m/s; None: twice the fastest axis of the data it judges, plus 0.5 m/s). ``layer_live`` False: for
+    data on which the fast layer measured nothing (held near the floor), judged as without a layer."""
     from cfknode.flight.mpc import acceleration_bounds
 
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     x, u = operating_envelope(1.0 if speed is None else speed, bounds.lower, bounds.upper)
     o = cfg.online
-    beside_layer = cfg.controller.adaptation in ("dob", "l1")  # a layer that estimates an additive offset
+    layer = beside_layer(cfg) and layer_live
     return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
-                      envelope_from_data=speed is None, constant_free=beside_layer,
-                      min_improvement=o.gate_layer_margin if beside_layer else 0.0,
-                      steps=o.gate_layer_steps if beside_layer else 1,
-                      min_gain=o.gate_layer_min_gain if beside_layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
-                      layer_hz=_layer_hz(cfg) if beside_layer else None)
+                      envelope_from_data=speed is None, constant_free=layer,
+                      min_improvement=o.gate_layer_margin if layer else 0.0,
+                      steps=o.gate_layer_steps if layer else 1,
+                      min_gain=o.gate_layer_min_gain if layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
+                      layer_hz=_layer_hz(cfg) if layer else None)
 
 
 def _layer_hz(cfg: Config) -> tuple[tuple[float, float], tuple[float, float]]:

@@ -124,12 +124,19 @@ class ModelCoefficients:
         return out
 
     def linearisation(self, model: ResidualLinearisation, offset: np.ndarray,
-                      vertical_acts: bool) -> ResidualLinearisation:
+                      vertical_acts: bool, model_vertical: bool = False) -> ResidualLinearisation:
         """The MPC's residual over the horizon: a (r - m) + k m + offset, from the model's linearisation (value
         and Jacobians scaled per row by a). k is 1 horizontally; vertically 0 while the layer's vertical acts
-        (its thrust scale carries the mean) and 1 while it does not (the model's mean flies as the model's)."""
+        (its thrust scale carries the mean) and 1 while it does not (the model's mean flies as the model's).
+        ``model_vertical``: the layer measures nothing here (held near the floor, where the model may learn the
+        ground effect), so the vertical is the model's alone, whole (a = 1, k = 1), without the layer's held
+        offset, which was measured elsewhere and is part of what the model learned."""
         a = self.a
         keep = np.array([1.0, 1.0, 0.0 if vertical_acts else 1.0])
+        if model_vertical:
+            a, keep, offset = a.copy(), keep.copy(), np.asarray(offset, dtype=float).copy()
+            a[2] = keep[2] = 1.0
+            offset[2] = 0.0
         c = model.c * a + ((keep - a) * self.mean + offset)
         ju = model.ju * a[:, None]
         if vertical_acts:  # the thrust scale is the thrust's effectiveness: the model's own slope is not flown

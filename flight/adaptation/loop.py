@@ -52,6 +52,7 @@ class LoopAdaptation:
         self._have_command = False
         self._version: int | None = None
         self._ground = ground_z  # None: the first estimate's height
+        self._low = False  # on the pattern below the layer's floor margin: the layer holds, a model owns the vertical
         self.saturated_ticks = 0
         self._zeros: dict[int, ResidualLinearisation] = {}  # per horizon: the zero residual, built once
         self.stepping_ticks = 0  # ticks flown while a step was tracked
@@ -85,6 +86,7 @@ class LoopAdaptation:
             if self.coefficients is not None:
                 self.coefficients.reset()
         self._have_command = False
+        self._low = False
         self._accel = None
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
@@ -101,6 +103,7 @@ class LoopAdaptation:
         if not self._have_command:
             return self.layer.applied
         airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
+        self._low = state == "TRACK" and not airborne
         if self.layer.stalled(now):  # a stalled host: the lags start from the new pose too
             self.lags.forget_velocity()
         x = np.concatenate((measured_position(est), est.v))
@@ -213,7 +216,8 @@ class LoopAdaptation:
         applied = self.layer.applied
         offset = applied.offset
         if model_residual is not None and self.coefficients is not None:
-            return self.coefficients.linearisation(model_residual, offset, vertical_acts=applied.acts[2])
+            return self.coefficients.linearisation(model_residual, offset, vertical_acts=applied.acts[2],
+                                                   model_vertical=self._low)
         if model_residual is None:
             if not any(offset.tolist()):
                 return None

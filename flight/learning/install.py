@@ -79,21 +79,32 @@ class TrainerJudging:
     _gating: Any
     _wall: Callable[[], float]
     _rules: GateRules
+    _held_rules: GateRules | None = None  # for data the layer held on (``_rules_for``)
+    recorder: Any
     _on_event: Callable[[Any, float], None]
     _reject: Callable[[float, Any, str, GateVerdict | None], None]
     _finish_gate: Callable[[float, Any, GateVerdict, float], None]
     _job = 0  # id of the newest job sent to the trainer
     _job_out = False  # its answer not yet read: the trainer is busy with it
 
-    def _send_gate_job(self, g: Any, current: Any | None, fresh: Fresh) -> None:
-        """Hand the candidate ``g`` to the trainer to judge, when it can (else its slices run here)."""
+    def _rules_for(self, after: float) -> GateRules:
+        """The gate's rules for the fresh data after ``after``: where the fast layer measured nothing on most of it
+        (held near the floor), the layer supplied no constant, so constants count there."""
+        if self._held_rules is not None and self.recorder.held_share(after) >= 0.5:
+            return self._held_rules
+        return self._rules
+
+    def _send_gate_job(self, g: Any, current: Any | None, fresh: Fresh, rules: GateRules | None = None) -> None:
+        """Hand the candidate ``g`` to the trainer to judge by ``rules`` (None: the learner's), when it can (else
+        its slices run here)."""
         if not judged_remotely(self.client, current) or self.client.state != "idle":
             return
         self._job += 1
         g.job, self._job_out = self._job, True
         self.stats.gate_jobs += 1
         held = g.held
-        self.client.submit_job(Job(g.job, gate_job, (held.outcome.model, current, held.window, fresh, self._rules)))
+        rules = self._rules if rules is None else rules
+        self.client.submit_job(Job(g.job, gate_job, (held.outcome.model, current, held.window, fresh, rules)))
 
     def _step_judged(self, t: float, g: Any, start: float) -> None:
         """A tick gap of a candidate the trainer judges. In lockstep the verdict applies on the tick its slices

@@ -52,18 +52,8 @@ from cfknode.models.trainer_process import JobOutcome, TrainerReady, TrainOutcom
 
 
 from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the app and tests use them)
-    LearnerSettings,
-    Log,
-    OnlineStats,
-    RoundRecord,
-    SwapEvent,
-    _ENDING_STATES,
-    _Flying,
-    _Gating,
-    _Held,
-    _Outstanding,
-    _PaceFrom,
-    _Watch,
+    LearnerSettings, Log, OnlineStats, RoundRecord, SwapEvent, _ENDING_STATES, _Flying, _Gating, _Held, _Outstanding,
+    _PaceFrom, _Watch,
 )
 from cfknode.flight.learning.reports import LearnerReports, SwapTimes
 
@@ -105,6 +95,8 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self.ending = False  # the supervisor is landing or has ended the flight: no trainer restarts
         self._install_work_s = 0.0  # wall time of the last on_tick when it folded, gated or swapped a model
         self._rules = GateRules(settings.gate, settings.filter_hz, settings.limits)
+        self._held_rules = (None if settings.held_limits is None
+                            else GateRules(settings.gate, settings.filter_hz, settings.held_limits))
         self.stats = OnlineStats()
         self.rounds: list[RoundRecord] = []
         self.swaps: list[SwapEvent] = []
@@ -321,9 +313,10 @@ class OnlineLearner(LearnerReports, TrainerJudging):
             fresh = self.recorder.fresh(out.window_t1)
         assert out.model is not None
         current = self._flying.model
-        g = _Gating(held, None, install_steps(out.model, current, held.window, fresh, self._rules), 0.0, 0.0)
+        rules = self._rules_for(out.window_t1)
+        g = _Gating(held, None, install_steps(out.model, current, held.window, fresh, rules), 0.0, 0.0)
         if not self.s.paper_lockstep:
-            self._send_gate_job(g, current, fresh)
+            self._send_gate_job(g, current, fresh, rules)
         g.work_s = g.max_slice_s = self._wall() - start
         self._gating = g
 

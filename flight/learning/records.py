@@ -45,6 +45,9 @@ class LearnerSettings:
     ground_z: float | None = None  # the floor's height: ticks near it are not learned from (None: no floor)
     min_height: float = MIN_HEIGHT  # m: "near" the floor, for ground_z (online.min_height)
     latency: LatencyPolicy = LatencyPolicy()  # lockstep only: the delay a model is applied with (online_latency.py)
+    # The gate's limits for fresh data the fast layer measured nothing on (held near the floor): there it supplied
+    # no constant, so a candidate is judged with its constants, as without a layer (None: ``limits`` always).
+    held_limits: GateLimits | None = None
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,7 @@ class WindowRecorder:
         self._x = np.empty((cap, 6))
         self._u = np.empty((cap, 3))
         self._s = np.ones(cap)  # the fast layer's thrust scale at each tick
+        self._held = np.zeros(cap, dtype=bool)  # the fast layer measured nothing at this tick (held near the floor)
         self._neighbour = neighbour
         self._nb = np.zeros((cap, 3)) if neighbour is not None else None
         self._n = 0  # ticks in the run buffer
@@ -100,6 +101,7 @@ class WindowRecorder:
         self._x[i, 3:6] = est.v
         self._u[i] = tick.acc
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
+        self._held[i] = layer is not None and layer.frozen
         if self._nb is not None:
             self._nb[i] = self._neighbour.relative(est.p)
         if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
@@ -128,6 +130,11 @@ class WindowRecorder:
         """How many of the run's ticks have t > ``after``."""
         return self._n - int(np.searchsorted(self._t[: self._n], after, side="right"))
 
+    def held_share(self, after: float) -> float:
+        """The share of the run's ticks with t > ``after`` on which the fast layer measured nothing (0 without any)."""
+        k = int(np.searchsorted(self._t[: self._n], after, side="right"))
+        return float(np.mean(self._held[k : self._n])) if self._n > k else 0.0
+
     def fresh(self, after: float) -> tuple[np.ndarray, ...]:
         """Copies of the run's ticks with t > ``after`` (all flown under the current model): (t, x, u), and the
         neighbour's relative position when recorded."""
@@ -154,6 +161,7 @@ class WindowRecorder:
         self._x[:keep] = self._x[start : self._n]
         self._u[:keep] = self._u[start : self._n]
         self._s[:keep] = self._s[start : self._n]
+        self._held[:keep] = self._held[start : self._n]
         if self._nb is not None:
             self._nb[:keep] = self._nb[start : self._n]
         self._w0 -= start
