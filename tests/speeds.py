@@ -428,6 +428,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_sigterm_before_take_off_unwinds_like_ctrl_c": SPAWNS,
     },
     "test_summary.py": FAST,
+    "test_surface_learning.py": BOTH,
     "test_thrust_limit.py": FLIES,
     "test_thrust_sag.py": {
         "*": FAST,
