@@ -44,20 +44,25 @@ def test_near_the_floor_the_vertical_is_the_models_whole_and_the_layers_held_off
     assert np.array_equal(coeffs.a, [0.8, 1.1, 0.6]) and np.array_equal(offset, [0.05, -0.02, 0.19])  # untouched
 
 
-def tick(t: float, frozen: bool) -> SimpleNamespace:
-    est = SimpleNamespace(p=np.array([0.0, 0.0, 0.5]), v=np.zeros(3))
+def tick(t: float, frozen: bool, z: float = 0.06) -> SimpleNamespace:
+    est = SimpleNamespace(p=np.array([0.0, 0.0, z]), v=np.zeros(3))
     layer = SimpleNamespace(stepping=False, thrust_scale=1.0, frozen=frozen)
     return SimpleNamespace(t=t, est=est, acc=np.zeros(3), source="mpc", model_version=0, compute_s=0.0,
                            saturated=False, layer=layer)
 
 
 def test_the_recorder_counts_the_ticks_the_layer_held() -> None:
-    rec = WindowRecorder(t_col=0.5, rate_hz=RATE, ground_z=0.0)
+    rec = WindowRecorder(t_col=0.5, rate_hz=RATE, ground_z=0.0, min_height=0.02)
     for k in range(100):
         rec.add(tick(k / RATE, frozen=k >= 60))
     assert rec.held_share(59.5 / RATE) == pytest.approx(40 / 40)
     assert rec.held_share(19.5 / RATE) == pytest.approx(40 / 80)
     assert rec.held_share(1.0) == 0.0  # no tick after it
+    # A layer frozen high above the floor (a stale pose) is not the floor's hold.
+    rec = WindowRecorder(t_col=0.5, rate_hz=RATE, ground_z=0.0)
+    for k in range(100):
+        rec.add(tick(k / RATE, frozen=True, z=1.0))
+    assert rec.held_share(0.0) == 0.0
 
 
 def test_a_ground_effect_constant_is_refused_beside_a_measuring_layer_and_judged_with_constants_where_it_holds() -> None:

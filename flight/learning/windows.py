@@ -10,6 +10,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cfknode.flight.adaptation.loop import GROUND_MARGIN
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
@@ -59,7 +60,7 @@ class WindowRecorder:
         self._x = np.empty((cap, 6))
         self._u = np.empty((cap, 3))
         self._s = np.ones(cap)  # the fast layer's thrust scale at each tick
-        self._held = np.zeros(cap, dtype=bool)  # the fast layer measured nothing at this tick (held near the floor)
+        self._held = np.zeros(cap, dtype=bool)  # the fast layer held near the floor (measured nothing) at this tick
         self._neighbour = neighbour
         self._nb = np.zeros((cap, 3)) if neighbour is not None else None
         self._n = 0  # ticks in the run buffer
@@ -101,7 +102,9 @@ class WindowRecorder:
         self._x[i, 3:6] = est.v
         self._u[i] = tick.acc
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
-        self._held[i] = layer is not None and layer.frozen
+        # Only the floor's hold: a stale pose also freezes the layer, but for a moment, not where it flies.
+        self._held[i] = (layer is not None and layer.frozen and self._ground is not None
+                         and est.p[2] <= self._ground + GROUND_MARGIN)
         if self._nb is not None:
             self._nb[i] = self._neighbour.relative(est.p)
         if not (math.isfinite(self._x[i].sum()) and math.isfinite(self._u[i].sum())):
