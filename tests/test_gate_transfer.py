@@ -71,3 +71,21 @@ def test_the_transfer_rule_alone_rejects_what_explains_nothing_beyond_the_layer(
     without = run_gate(mf, model, None, gate_pairs(t[400:], x[400:], u[400:], 8.0), x[:400], u[:400],
                        dataclasses.replace(lenient, layer_hz=None))
     assert without.accepted, without.reason  # the rule, not another, turned it away
+
+
+def test_a_minimum_score_refuses_a_candidate_that_removes_too_little_of_what_the_layer_leaves():
+    import dataclasses
+
+    lenient = dataclasses.replace(limits(), constant_free=True, min_improvement=-1000.0, min_gain=-np.inf,
+                                  layer_hz=LAYER_HZ)
+    t, x, u = manoeuvre(-0.6, seed=4)
+    fresh = gate_pairs(t[400:], x[400:], u[400:], 8.0)
+    mf, small = slope_model(-0.06)  # a tenth of the drag that is there: a small positive score
+    score = float(beyond_layer(small, None, fresh, LAYER_HZ)[0])
+    assert 0.0 < score < 0.3
+    assert run_gate(mf, small, None, fresh, x[:400], u[:400], lenient).accepted
+    strict = dataclasses.replace(lenient, min_score=0.3)
+    verdict = run_gate(mf, small, None, fresh, x[:400], u[:400], strict)
+    assert not verdict.accepted and "explains nothing beyond the fast layer" in verdict.reason
+    mf, whole = slope_model(-0.6)
+    assert run_gate(mf, whole, None, fresh, x[:400], u[:400], strict).accepted

@@ -126,7 +126,7 @@ def gate_limits(cfg: Config, speed: float | None = None, layer_live: bool = True
                       min_improvement=o.gate_layer_margin if layer else 0.0,
                       steps=o.gate_layer_steps if layer else 1,
                       min_gain=o.gate_layer_min_gain if layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
-                      layer_hz=_layer_hz(cfg) if layer else None)
+                      layer_hz=_layer_hz(cfg) if layer else None, min_score=o.gate_layer_min_score if layer else 0.0)
 
 
 def _layer_hz(cfg: Config) -> tuple[tuple[float, float], tuple[float, float]]:

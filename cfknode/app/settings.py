@@ -54,6 +54,8 @@ class OnlineConfig:
         doc="... over this many consecutive fresh samples flown from each start")
     gate_layer_min_gain: float = setting(unit="m/s^2", low=0, high=10,
         doc="... and better by at least this acceleration over that rollout")
+    gate_layer_min_score: float = setting(low=0, high=1, open_high=True,
+        doc="... and remove more than this share of what the layer leaves on some axis (0: any)")
     trainer_timeout: float = setting(unit="s", low=0, high=600, open_low=True,
         doc="wall s without a result: the trainer is killed and restarted")
     trainer_start_timeout: float = setting(unit="s", low=1, high=3600,

@@ -188,6 +188,8 @@ class GateLimits:
     # of what the layer leaves on held-out data on some axis (``beyond_layer``), the score `cfknode model
     # check` reports: one that only re-learns what the layer already takes is never flown.
     layer_hz: tuple[tuple[float, float], tuple[float, float]] | None = None
+    # ... and remove more than this share of it on that axis (0: any positive share).
+    min_score: float = 0.0
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -360,9 +362,10 @@ def gate_steps(
         return verdict(f"better by only {gain:.3g} m/s^2 on held-out data ({what}below {limits.min_gain:g}: noise)")
     if limits.layer_hz is not None:
         score = beyond_layer(candidate, current, fresh, limits.layer_hz)
-        if not float(np.max(score)) > 0.0:
+        if not float(np.max(score)) > limits.min_score:
+            need = f", needs more than {limits.min_score:.0%} on some axis" if limits.min_score > 0.0 else ""
             return verdict("explains nothing beyond the fast layer on held-out data (score "
-                           + " / ".join(f"{s:+.0%}" for s in score) + ")")
+                           + " / ".join(f"{s:+.0%}" for s in score) + need + ")")
     return verdict("")
 
 
