@@ -140,6 +140,7 @@ class GateVerdict:
     velocity_gain: float = math.nan  # largest eigenvalue of sym(dr/dv), 1/s
     cross_gain: float = math.nan  # largest |off-diagonal| of dr/du
     tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
+    score: tuple[float, ...] = ()  # beside the layer: per axis, the share of what it leaves the candidate removes
 
 
 @dataclass(frozen=True)
@@ -341,9 +342,13 @@ def gate_steps(
     yield
     e_nom = e_cur if current is None else rollout_rmse(None, fresh, k, cf)
     lo, hi = limits.control_gain
+    score = ()
+    if limits.layer_hz is not None and n > 0:  # reported with every verdict from here on
+        score = tuple(float(v) for v in beyond_layer(candidate, current, fresh, limits.layer_hz))
 
     def verdict(reason: str) -> GateVerdict:
-        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, climb)
+        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, climb,
+                           score)
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
@@ -360,9 +365,8 @@ def gate_steps(
     gain = (e_cur - e_cand) / (k * float(np.median(fresh.dt)))  # m/s^2: the error removed per second of rollout
     if gain < limits.min_gain:
         return verdict(f"better by only {gain:.3g} m/s^2 on held-out data ({what}below {limits.min_gain:g}: noise)")
-    if limits.layer_hz is not None:
-        score = beyond_layer(candidate, current, fresh, limits.layer_hz)
-        if not float(np.max(score)) > limits.min_score:
+    if score:
+        if not max(score) > limits.min_score:
             need = f", needs more than {limits.min_score:.0%} on some axis" if limits.min_score > 0.0 else ""
             return verdict("explains nothing beyond the fast layer on held-out data (score "
                            + " / ".join(f"{s:+.0%}" for s in score) + need + ")")
