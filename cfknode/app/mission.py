@@ -112,9 +112,9 @@ def model_not_flown(cfg: Config, score: Any) -> str | None:
     if ctrl.adaptation == "none" or not ctrl.adaptation_settings.model_coefficients \
             or any(flown_axes(score, min_score) or (True,)):
         return None
-    scores = ", ".join(f"{v:+.1%}" for v in score.tolist())
+    scores = ", ".join(f"{v:+.2%}" for v in score.tolist())
     return (f"model not flown: {ctrl.model} adds nothing beside the fast layer on any axis (its held-out score "
-            f"x, y, z: {scores}; model_min_score {min_score:g}); flying the layer alone")
+            f"x, y, z: {scores}; model_min_score {min_score:.2%}); flying the layer alone")
 
 
 def refuse_neighbour_mismatch(cfg: Config, model_file: Any) -> None:
