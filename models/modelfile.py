@@ -333,7 +333,7 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     training = need(meta, "training")
     info = None if training is None else _training_from(training, name)
     extra = meta.get("extra", {})
-    problem = score_problem(extra.get(SCORE_KEY)) if isinstance(extra, dict) else None
+    problem = score_problem(extra.get(SCORE_KEY)) if isinstance(extra, Mapping) else None
     if problem:
         raise ModelFileError(f"model file {name}: {problem}")
     return ModelFile(

@@ -17,7 +17,7 @@ See docs/data.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -165,7 +165,7 @@ def score_problem(value: object) -> str | None:
 
 def stored_score(extra: object) -> np.ndarray | None:
     """The per-axis score a model file stores (``score_problem`` checked at load); None for older files."""
-    value = extra.get(SCORE_KEY) if isinstance(extra, dict) else None
+    value = extra.get(SCORE_KEY) if isinstance(extra, Mapping) else None
     if value is None or score_problem(value) is not None:
         return None
     return np.asarray(value, dtype=np.float64)

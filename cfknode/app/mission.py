@@ -72,8 +72,8 @@ def build_controller(cfg: Config) -> TranslationalMpc | None:
 
 def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot | None:
     """The KNODE residual to fly with, loaded before take-off so a bad file refuses the flight. A model whose
-    stored score beside the layer is positive on no axis is not flown (``model_not_flown``; the line is
-    logged and appended to ``notes``): the flight flies the layer alone."""
+    stored score beside the layer is above ``model_min_score`` on no axis is not flown (``model_not_flown``;
+    the line is logged and appended to ``notes``): the flight flies the layer alone."""
     ctrl = cfg.controller
     if ctrl.kind == "geometric":
         if ctrl.model:
@@ -104,7 +104,8 @@ def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot |
 
 def model_not_flown(cfg: Config, score: Any) -> str | None:
     """One line when the layer flies and the model's stored score (x, y, z) is above the threshold on no axis
-    (``controller.adaptation_settings.model_min_score``), else None (no layer, or no score stored)."""
+    (``controller.adaptation_settings.model_min_score``), else None (no layer, no coefficients, or no score
+    stored: the score is the share beyond the layer, and acts through the coefficients)."""
     from cfknode.models.residual_check import flown_axes
 
     ctrl = cfg.controller

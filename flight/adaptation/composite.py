@@ -97,8 +97,8 @@ class ModelCoefficients:
                  flown: tuple[bool, bool, bool] = (True, True, True)) -> None:
         self.s = settings
         self.dt = 1.0 / rate_hz
-        # Axes the model flies on; on the others a = 0, k = 0 for good: the layer alone (a model's stored
-        # score there was not positive, residual_check.flown_axes).
+        # Axes the model flies on; on the others a = 0, k = 0 for good: the layer alone (the model's stored
+        # score there is not above model_min_score, residual_check.flown_axes).
         self.flown = np.array(flown, dtype=bool)
         # Prior information in the fit's units: sum over ~memory/dt samples of prior^2.
         self._prior_info = settings.prior ** 2 / max(1.0 - math.exp(-self.dt / settings.memory_s), 1e-9)
