@@ -77,6 +77,8 @@ class AdaptationTuning:
         doc="a model residual varying by this much (RMS) weighs as much as the prior weight 1")
     model_mean_s: float = setting(unit="s", low=0, high=600, open_low=True,
         doc="time constant of the model's mean residual, which the layer takes (vertically: the thrust scale)")
+    model_min_score: float = setting(unit="share", low=0, high=1,
+        doc="beside the layer a model flies only on axes whose stored score (model beyond layer) is above this, else not")
 
 
 @dataclass(frozen=True)

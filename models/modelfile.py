@@ -36,6 +36,7 @@ import numpy as np
 
 from cfknode.kernel.bounded_input import describe_os_error, load_json, open_regular
 from cfknode.kernel.outputs import output_problem
+from cfknode.models.residual_check import SCORE_KEY, score_problem
 
 FORMAT_NAME = "cfknode.knode"
 FORMAT_VERSION = 1
@@ -332,6 +333,9 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     training = need(meta, "training")
     info = None if training is None else _training_from(training, name)
     extra = meta.get("extra", {})
+    problem = score_problem(extra.get(SCORE_KEY)) if isinstance(extra, Mapping) else None
+    if problem:
+        raise ModelFileError(f"model file {name}: {problem}")
     return ModelFile(
         hidden=tuple(hidden),
         activation=activation,

@@ -17,7 +17,7 @@ See docs/data.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -147,3 +147,34 @@ def verdict(beyond: np.ndarray, axes: str = "xyz") -> str:
     named = ", ".join(f"{a} ({s:.0%})" for a, s in good)
     return (f"worth learning on {named}: on held-out manoeuvres a model removes that share of what the "
             f"fast layer leaves; elsewhere it adds under {WORTH_IT:.0%}.")
+
+
+# The model file's metadata key (``ModelFile.extra``) for ``cfknode train``'s held-out ``beyond_layer`` (x, y, z).
+SCORE_KEY = "beyond_layer"
+
+
+def score_problem(value: object) -> str | None:
+    """Why a stored score is unusable (None when it is absent or three finite numbers)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 3 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value):
+        return f"metadata 'extra.{SCORE_KEY}' must be a list of 3 finite numbers"
+    return None
+
+
+def stored_score(extra: object) -> np.ndarray | None:
+    """The per-axis score a model file stores (``score_problem`` checked at load); None for older files."""
+    value = extra.get(SCORE_KEY) if isinstance(extra, Mapping) else None
+    if value is None or score_problem(value) is not None:
+        return None
+    return np.asarray(value, dtype=np.float64)
+
+
+def flown_axes(score: np.ndarray | None, min_score: float) -> tuple[bool, bool, bool] | None:
+    """The axes a model flies on beside the layer: those whose stored score exceeds ``min_score``. None: no
+    score stored (every axis flies, as before scores were stored)."""
+    if score is None:
+        return None
+    x, y, z = (float(s) > min_score for s in score.tolist())
+    return x, y, z

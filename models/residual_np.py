@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.models.modelfile import N_IN, N_OUT, ModelFile
+from cfknode.models.residual_check import stored_score
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,8 @@ class ResidualQueue:
         self.neighbour_default = neighbour_default
         # Output biases are summed once: the weighted sum over networks of constants.
         self._out_bias = layers[-1].bias.sum(axis=0) if layers else np.zeros((1, N_OUT))
+        # cfknode train's held-out per-axis score beside the fast layer (residual_check.py); None: not stored.
+        self.beyond_layer: np.ndarray | None = None
 
     @classmethod
     def from_model_file(cls, mf: ModelFile) -> ResidualQueue:
@@ -78,7 +81,9 @@ class ResidualQueue:
                     bias=np.stack(bs)[:, None, :],
                 )
             )
-        return cls(tuple(stacked), mf.activation, len(mf.networks), default)
+        queue = cls(tuple(stacked), mf.activation, len(mf.networks), default)
+        queue.beyond_layer = stored_score(mf.extra)
+        return queue
 
     @property
     def layers(self) -> tuple[StackedLayer, ...]:

@@ -287,6 +287,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_mellinger.py": FAST,
     "test_mocap_sim.py": FAST,
     "test_model_monitor.py": FAST,
+    "test_model_score.py": FAST,
     "test_modelfile.py": {
         "*": SPAWNS,
         "test_corrupt_header_bytes": FAST,

@@ -17,6 +17,7 @@ from cfknode.app.data.check import check, queue_residual, split_by_group, split_
 from cfknode.app.data.prepare import TableOptions, estimate_lag, prepare, shift_input
 from cfknode.app.data.synthetic import Noise, flight_table
 from cfknode.app.data.tables import parse_column_map, read_table
+from cfknode.models.modelfile import load_model
 from cfknode.models.residual_check import explained, layer_estimate, pair_residual
 from cfknode.models.training import train_new_model
 
@@ -171,6 +172,9 @@ def test_model_check_and_train_from_the_command_line(table, tmp_path, capsys):
     assert main(["train", "--data", str(path), "--set", f"vehicle.mass={MASS}", "--epochs", "20",
                  "--out", str(model)]) == 0
     assert model.is_file()
+    assert "stored score beyond the layer (x, y, z)" in capsys.readouterr().out
+    score = load_model(model).extra["beyond_layer"]  # the flight beside the layer reads it
+    assert len(score) == 3 and all(isinstance(v, float) for v in score)
     assert main(["model", "check", "--data", str(path), "--set", f"vehicle.mass={MASS}", "--model", str(model)]) == 0
     assert main(["model", "check", "--set", f"vehicle.mass={MASS}"]) == 2  # no data: one line
     assert "give flight data" in capsys.readouterr().err

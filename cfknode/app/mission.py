@@ -70,8 +70,10 @@ def build_controller(cfg: Config) -> TranslationalMpc | None:
     return TranslationalMpc(cfg.controller, cfg.vehicle)
 
 
-def build_model_slot(cfg: Config) -> ModelSlot | None:
-    """The KNODE residual to fly with, loaded before take-off so a bad file refuses the flight."""
+def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot | None:
+    """The KNODE residual to fly with, loaded before take-off so a bad file refuses the flight. A model whose
+    stored score beside the layer is above ``model_min_score`` on no axis is not flown (``model_not_flown``;
+    the line is logged and appended to ``notes``): the flight flies the layer alone."""
     ctrl = cfg.controller
     if ctrl.kind == "geometric":
         if ctrl.model:
@@ -91,7 +93,29 @@ def build_model_slot(cfg: Config) -> ModelSlot | None:
     refuse_neighbour_mismatch(cfg, model_file)
     queue = ResidualQueue.from_model_file(model_file)
     refuse_implausible_model(cfg, model_file, queue)
+    note = model_not_flown(cfg, queue.beyond_layer)
+    if note:
+        _logger.warning(note)
+        if notes is not None:
+            notes.append(note)
+        return None
     return ModelSlot(queue, version=1)
+
+
+def model_not_flown(cfg: Config, score: Any) -> str | None:
+    """One line when the layer flies and the model's stored score (x, y, z) is above the threshold on no axis
+    (``controller.adaptation_settings.model_min_score``), else None (no layer, no coefficients, or no score
+    stored: the score is the share beyond the layer, and acts through the coefficients)."""
+    from cfknode.models.residual_check import flown_axes
+
+    ctrl = cfg.controller
+    min_score = ctrl.adaptation_settings.model_min_score
+    if ctrl.adaptation == "none" or not ctrl.adaptation_settings.model_coefficients \
+            or any(flown_axes(score, min_score) or (True,)):
+        return None
+    scores = ", ".join(f"{v:+.2%}" for v in score.tolist())
+    return (f"model not flown: {ctrl.model} adds nothing beside the fast layer on any axis (its held-out score "
+            f"x, y, z: {scores}; model_min_score {min_score:.2%}); flying the layer alone")
 
 
 def refuse_neighbour_mismatch(cfg: Config, model_file: Any) -> None:
@@ -161,8 +185,10 @@ def run_flight(
         _logger.warning(event["text"])
     from cfknode.app.learning import online_model_slot, start_trainer
 
-    model = build_model_slot(flight_cfg)
+    notes: list[str] = []
+    model = build_model_slot(flight_cfg, notes)
     loaded_model = model is not None
+    forced = [*forced, *({"level": "warning", "text": n, "source": "model"} for n in notes)]
     model = online_model_slot(flight_cfg, model)  # online learning swaps into an empty (nominal) slot
     if model is None and cfg.faults.nan_model_at >= 0:
         model = ModelSlot(None)  # nominal until the injected model is swapped in
@@ -172,7 +198,8 @@ def run_flight(
     box = estop_mailbox(cfg, flight_cfg) if estop else contextlib.nullcontext(None)
     with box as estop_box, start_trainer(flight_cfg) as trainer, session as sess:
         request = _Request(name_hint, observers, on_supervisor, dashboard, trajectory, live)
-        return _fly_session(sess, request, _Kit(model, loaded_model, mpc, trainer, estop_box, (*forced, *sess.events)))
+        return _fly_session(sess, request, _Kit(model, loaded_model, mpc, trainer, estop_box, (*forced, *sess.events),
+                                                notes[0] if notes else None))
 
 
 def estop_name(cfg: Config) -> str:
@@ -225,6 +252,7 @@ class _Kit:
     trainer: Any
     estop: EstopMailbox | None
     events: Sequence[dict[str, Any]]  # logged at t=0: forced config changes, the session's pre-flight events
+    model_not_flown: str | None = None  # why the configured model file is not flown (build_model_slot)
 
 
 def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
@@ -283,6 +311,7 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
                     "fence_excursion_m": float(supervisor.fence.excursion(record.p).max()) if record.ticks else 0.0,
                     "controller": _controller_label(cfg, kit.loaded_model, online is not None),
                     "model": cfg.controller.model or None,
+                    **({"model_not_flown": kit.model_not_flown} if kit.model_not_flown else {}),
                     "solver": cfg.controller.solver if mpc is not None else "none",
                     "backend": cfg.backend,
                     "lockstep": bool(sess.clock.lockstep),

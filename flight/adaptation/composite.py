@@ -80,48 +80,58 @@ def fit_coefficient(fit: AxisFit, bounds: tuple[float, float]) -> float:
     return min(max((fit.r11 * fit.b0 - fit.r01 * fit.b1) / det, bounds[0]), bounds[1])
 
 
-def composite_prediction(r: np.ndarray, a: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """What the layer's observer is told the model predicts: a (r - m), plus m horizontally (see the module)."""
+def composite_prediction(r: np.ndarray, a: np.ndarray, mean: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """What the layer's observer is told the model predicts: a (r - m), plus m horizontally (see the module);
+    ``keep`` (default 1, 1, 0) is k per axis (0 on an axis the model does not fly)."""
     x, y, z = r.tolist()
     ax, ay, az = a.tolist()
     mx, my, mz = mean.tolist()
-    return np.array([ax * (x - mx) + mx, ay * (y - my) + my, az * (z - mz)])
+    kx, ky, kz = (1.0, 1.0, 0.0) if keep is None else keep.tolist()
+    return np.array([ax * (x - mx) + kx * mx, ay * (y - my) + ky * my, az * (z - mz) + kz * mz])
 
 
 class ModelCoefficients:
     """The coefficients a, the model's mean m and the per-axis fits; ``tick`` once per layer update."""
 
-    def __init__(self, settings: CoefficientSettings, rate_hz: float) -> None:
+    def __init__(self, settings: CoefficientSettings, rate_hz: float,
+                 flown: tuple[bool, bool, bool] = (True, True, True)) -> None:
         self.s = settings
         self.dt = 1.0 / rate_hz
+        # Axes the model flies on; on the others a = 0, k = 0 for good: the layer alone (the model's stored
+        # score there is not above model_min_score, residual_check.flown_axes).
+        self.flown = np.array(flown, dtype=bool)
         # Prior information in the fit's units: sum over ~memory/dt samples of prior^2.
         self._prior_info = settings.prior ** 2 / max(1.0 - math.exp(-self.dt / settings.memory_s), 1e-9)
         self.reset()
 
     def reset(self) -> None:
-        """The model as it is: a = 1, no mean taken out (take-off, landing, a new model)."""
-        self.a = np.ones(3)
+        """The model as it is: a = 1 (0 where it does not fly), no mean taken out (take-off, landing, a new
+        model)."""
+        self.a = self.flown.astype(float)
         self.mean = np.zeros(3)
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
         self._fits = [prior_fit(self._prior_info)] * 3
         self._started = False
 
-    def restart(self, r_recent: np.ndarray) -> None:
+    def restart(self, r_recent: np.ndarray, flown: tuple[bool, bool, bool] = (True, True, True)) -> None:
         """A new model: a = 1 again, its mean taken where the vehicle just flew (``r_recent`` (n, 3), the new
         model's residual on the layer's recent ticks), so that what it hands the layer is what it predicts
-        there and the layer's re-base has little to move."""
+        there and the layer's re-base has little to move; ``flown`` the new model's axes."""
+        self.flown = np.array(flown, dtype=bool)
         self.reset()
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
 
+    def _keep(self, vertical_acts: bool = True) -> np.ndarray:
+        """k per axis: 1 horizontally, vertically 0 while the layer's vertical acts; 0 where the model does not fly."""
+        return np.where(self.flown, [1.0, 1.0, 0.0 if vertical_acts else 1.0], 0.0)
+
     def prediction(self, r: np.ndarray) -> np.ndarray:
-        return composite_prediction(r, self.a, self.mean)
+        return composite_prediction(r, self.a, self.mean, self._keep())
 
     def predictions(self, r: np.ndarray) -> np.ndarray:
         """``prediction`` for rows (n, 3)."""
-        out = self.a * (r - self.mean)
-        out[:, :2] += self.mean[:2]
-        return out
+        return self.a * (r - self.mean) + self._keep() * self.mean
 
     def linearisation(self, model: ResidualLinearisation, offset: np.ndarray,
                       vertical_acts: bool, model_vertical: bool = False) -> ResidualLinearisation:
@@ -132,8 +142,8 @@ class ModelCoefficients:
         ground effect), so the vertical is the model's alone, whole (a = 1, k = 1), without the layer's held
         offset, which was measured elsewhere and is part of what the model learned."""
         a = self.a
-        keep = np.array([1.0, 1.0, 0.0 if vertical_acts else 1.0])
-        if model_vertical:
+        keep = self._keep(vertical_acts)
+        if model_vertical and self.flown[2]:
             a, keep, offset = a.copy(), keep.copy(), np.asarray(offset, dtype=float).copy()
             a[2] = keep[2] = 1.0
             offset[2] = 0.0
@@ -169,7 +179,7 @@ class ModelCoefficients:
             m_new[i] = m_old[i] + k_mean * (rs[i] - m_old[i])
             w = min(1.0, float(omega[i]) * dt)
             phi_f = self._phi_f[i] = self._phi_f[i] + w * ((rs[i] - m_new[i]) - self._phi_f[i])
-            if learn:
+            if learn and self.flown[i]:
                 y = float(sigma[i]) + a_old[i] * phi_f  # the filtered residual beyond the layer's constant
                 self._fits[i] = fit_step(self._fits[i], phi_f, y, keep, self._prior_info)
                 a_new[i] = fit_coefficient(self._fits[i], self.s.bounds)

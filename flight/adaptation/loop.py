@@ -23,6 +23,7 @@ from cfknode.flight.adaptation.accel_path import (
     AccelState, AccelTuning, accel_part, accel_step, saturated, world_residual,
 )
 from cfknode.flight.adaptation.composite import CoefficientSettings, ModelCoefficients
+from cfknode.models.residual_check import flown_axes
 from cfknode.flight.adaptation.estimate import AdaptationEstimate
 from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.settings import settings_from_controller
@@ -67,6 +68,7 @@ class LoopAdaptation:
         self._coeff_settings = CoefficientSettings(tuning.coefficient_bounds, tuning.coefficient_memory_s,
                                                    tuning.coefficient_prior, tuning.model_mean_s)
         self.coefficients: ModelCoefficients | None = None
+        self._coefficients_flown: tuple[np.ndarray, np.ndarray] | None = None  # (a, m) at the last off-air reset
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -83,7 +85,8 @@ class LoopAdaptation:
         if self._have_command:
             self.layer.reset()
             self.lags.forget_velocity()
-            if self.coefficients is not None:
+            if self.coefficients is not None:  # the summary reports them as flown, not as reset on the ground
+                self._coefficients_flown = (self.coefficients.a.copy(), self.coefficients.mean.copy())
                 self.coefficients.reset()
         self._have_command = False
         self._low = False
@@ -254,9 +257,14 @@ class LoopAdaptation:
         without a model is the layer's alone."""
         flying = model is not None and model.model is not None and self.layer.s.model_coefficients
         if flying and self.coefficients is None:
-            self.coefficients = ModelCoefficients(self._coeff_settings, self.ctrl.rate_hz)
+            self.coefficients = ModelCoefficients(self._coeff_settings, self.ctrl.rate_hz, self._flown(model))
         elif not flying:
             self.coefficients = None
+
+    def _flown(self, model: Any) -> tuple[bool, bool, bool]:
+        """The axes ``model`` flies on beside the layer: by its stored score (all of them without one)."""
+        score = getattr(model.model, "beyond_layer", None) if model is not None else None
+        return flown_axes(score, self.layer.s.model_min_score) or (True, True, True)
 
     def _rebase(self, model: Any) -> None:
         """A swap: the new model's prediction on the recent ticks, the coefficients restarted on it (a = 1,
@@ -272,7 +280,7 @@ class LoopAdaptation:
                 r = np.asarray(inner.evaluate(x, u), dtype=float)
             if r.shape == u.shape and np.all(np.isfinite(r)):
                 if self.coefficients is not None:
-                    self.coefficients.restart(r)
+                    self.coefficients.restart(r, self._flown(model))
                     r = self.coefficients.predictions(r)
                 new_acc = u + r
         elif self.coefficients is not None:
@@ -296,12 +304,16 @@ class LoopAdaptation:
                 "adaptation_state": self.state_summary(), **self._coefficient_summary()}
 
     def _coefficient_summary(self) -> dict[str, Any]:
-        """The model's coefficients and mean at the end, when a model flew with them."""
+        """The model's coefficients and mean at the end (as flown, before the landing's reset) and the axes it
+        flew on, when a model flew with them."""
         c = self.coefficients
         if c is None:
             return {}
-        return {"adaptation_model_coefficients_end": [round(float(v), 4) for v in c.a],
-                "adaptation_model_mean_end": [round(float(v), 4) for v in c.mean]}
+        flown = self._coefficients_flown if not self._have_command else None  # on the ground: as last flown
+        a, mean = (c.a, c.mean) if flown is None else flown
+        return {"adaptation_model_coefficients_end": [round(float(v), 4) for v in a],
+                "adaptation_model_mean_end": [round(float(v), 4) for v in mean],
+                "adaptation_model_axes": "".join(ax for ax, f in zip("xyz", c.flown.tolist()) if f) or "none"}
 
     def state_summary(self) -> dict[str, Any]:
         """The layer's state over the flight, one summary field: whether it was tracking a step at the end, for

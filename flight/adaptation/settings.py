@@ -53,6 +53,7 @@ class AdaptationSettings:
     coefficient_memory_s: float
     coefficient_prior: float
     model_mean_s: float
+    model_min_score: float
 
     @property
     def enabled(self) -> bool:

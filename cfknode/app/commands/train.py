@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from cfknode.app.config import ConfigError
     from cfknode.models.knode import from_torch_queue
     from cfknode.models.modelfile import ModelFileError, load_model, model_summary, save_model
+    from cfknode.models.residual_check import SCORE_KEY
     from cfknode.models.training import train_new_model
 
     console = Console()
@@ -60,18 +61,27 @@ def run(args: argparse.Namespace) -> int:
             dataset, cfg.knode, cfg.training, initial=initial,
             progress=lambda epoch, loss: bar.update(task, completed=epoch, loss=loss),
         )
-    model = from_torch_queue(queue, training=result.training_info(dataset), extra={"config_knode": cfg.to_dict()["knode"]})
+    report = None
+    if len(dataset.val) >= 10:  # judged before it is written: the file keeps the score (the flight reads it)
+        from cfknode.app.data.check import check, queue_residual
+
+        a = cfg.controller.adaptation_settings
+        report = check(dataset.val, queue_residual(queue), (a.bandwidth_xy_hz, a.bandwidth_hz),
+                       (a.output_bandwidth_xy_hz, a.output_bandwidth_hz), held_out or ("the last part of each run",))
+    extra: dict[str, object] = {"config_knode": cfg.to_dict()["knode"]}
+    if report is not None:
+        extra[SCORE_KEY] = [float(v) for v in report.shares.beyond_layer]
+    model = from_torch_queue(queue, training=result.training_info(dataset), extra=extra)
     path = save_model(out, model)
     console.print(model_summary(load_model(path)))
     console.print(
         f"held-out one-step velocity RMSE: nominal {result.val_rmse_nominal:.4g} m/s -> model "
         f"{result.val_rmse_model:.4g} m/s; wrote {path}"
     )
-    if len(dataset.val) >= 10:
-        from cfknode.app.data.check import check, queue_residual, render
+    if report is not None:
+        from cfknode.app.data.check import render
 
-        a = cfg.controller.adaptation_settings
-        render(check(dataset.val, queue_residual(queue), (a.bandwidth_xy_hz, a.bandwidth_hz),
-                     (a.output_bandwidth_xy_hz, a.output_bandwidth_hz), held_out or ("the last part of each run",)),
-               console)
+        render(report, console)
+        console.print("stored score beyond the layer (x, y, z): "
+                      + ", ".join(f"{v:+.4f}" for v in report.shares.beyond_layer))
     return 0
