@@ -46,13 +46,27 @@ def split_dataset(train: Sequence[Segment], held: Sequence[Segment], filter_hz: 
     return dataclasses.replace(fitted, val=make_dataset(held, filter_hz, 0.0).train)
 
 
-def queue_residual(queue: Any) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """The model's residual as a numpy function of (x (k, 6), u (k, 3))."""
-    def residual(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+def queue_residual(queue: Any, beside_layer: bool = True) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """The model's residual as a numpy function of (x (k, 6), u (k, 3)); ``beside_layer``: as it flies beside
+    the fast layer, vertically without its slope in the vertical command u_z, which the layer's thrust scale
+    owns there (docs/architecture.md, the model and the layer as one estimator): the score is then the score of
+    what flies."""
+    def raw(x: np.ndarray, u: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             out = queue(torch.as_tensor(x, dtype=queue.dtype), torch.as_tensor(u, dtype=queue.dtype))
         return out.numpy().astype(np.float64)
-    return residual
+
+    def flown(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        r = raw(x, u)
+        step = np.zeros(3)
+        step[2] = SLOPE_STEP
+        slope = (raw(x, u + step)[:, 2] - raw(x, u - step)[:, 2]) / (2.0 * SLOPE_STEP)
+        r[:, 2] -= slope * u[:, 2]
+        return r
+    return flown if beside_layer else raw
+
+
+SLOPE_STEP = 1e-2  # m/s^2: the central difference's half step for the slope in u_z (the network is smooth)
 
 
 @dataclass(frozen=True)
