@@ -112,8 +112,8 @@ class LoopAdaptation:
         predicted = self._r if coeffs is None else coeffs.prediction(self._r)
         if airborne:  # the lag bank learns from the same frames as the layer
             e = self.layer.estimate
-            self.lags.observe(float(est.v[2]), bz[2], self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
-                              float(predicted[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
+            self.lags.observe(est.v.item(2), bz[2], self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
+                              predicted.item(2) + e.offset.item(2), pose_fresh, learn=not (e.stepping or self._sat[0]))
         else:
             self.lags.forget_velocity()
         by_lag = self.lags.acting_scaled(bz[2], self.vehicle.mass)
@@ -320,18 +320,10 @@ def accel_tuning(layer: FastAdaptation) -> AccelTuning | None:
                        s.accel_stale_s)
 
 
-def measured_position(est: Any) -> np.ndarray:
-    """The newest mocap frame's position carried to the estimate's time with the estimated velocity (the filter's
-    own position lags under a sudden acceleration, which would bias the step fit); the filter's without one."""
-    frame = getattr(est, "frame", None)
-    if frame is None:
-        return est.p
-    t_frame, p = frame
-    return p + (est.t - t_frame) * est.v
-
-
 def measured_state(est: Any) -> np.ndarray:
-    """(``measured_position``, v) in one array, with floats: the same numbers without three numpy calls a tick."""
+    """(position, velocity) in one array. The position is the newest mocap frame's carried to the estimate's time
+    with the estimated velocity (the filter's own position lags under a sudden acceleration, which would bias the
+    step fit); the filter's without one. Floats: p + (t - t_frame) v element by element, the arrays' numbers."""
     v = est.v.tolist()
     frame = getattr(est, "frame", None)
     if frame is None:
