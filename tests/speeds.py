@@ -62,6 +62,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_smooth_step_passes_through_at_infinity_and_low_passes_otherwise": FAST,
         "test_velocity_noise_no_longer_reaches_the_offset": (SLOW,),
     },
+    "test_adaptation_floats.py": FAST,
     "test_adaptation_steps.py": {
         "*": FLIES,
         "test_cusum_accumulates_a_bias_and_forgets_noise": FAST,

@@ -39,7 +39,8 @@ docs/history.md#fast-adaptation-a-slow-observer-a-step-detector-the-motor-lag-ch
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -47,16 +48,17 @@ from cfknode.flight.adaptation.engagement import Engagement
 from cfknode.flight.adaptation.estimate import AdaptationEstimate, applied_estimate
 from cfknode.flight.adaptation.imu_step import ImuStepDetector
 from cfknode.flight.adaptation.observer import (
-    L1Gains, axis_transfer, dob_step, l1_step, rebase_offset, sigma_after_transfer, shrink, smooth_step, thrust_transfer,
+    L1Gains, axis_transfer, dob_step_floats, l1_step, rebase_offset, shrink, sigma_after_transfer_floats,
+    smooth_step_floats, thrust_transfer,
 )
 from cfknode.flight.adaptation.settings import MODES, AdaptationSettings
 from cfknode.flight.adaptation.step_detect import FrameStepDetector, StepTracker
 from cfknode.flight.adaptation.step_fit import LAG_FRAMES, StepFit
 
 
-@dataclass(frozen=True)
-class LoopExtras:
-    """What the adaptation loop adds to a tick beyond the measurements (see ``FastAdaptation.update``)."""
+class LoopExtras(NamedTuple):
+    """What the adaptation loop adds to a tick beyond the measurements (see ``FastAdaptation.update``). A named
+    tuple: built every tick, where a frozen dataclass's constructor cost a few microseconds."""
 
     u_commanded: np.ndarray | None = None
     thrust_by_lag: np.ndarray | None = None
@@ -66,6 +68,8 @@ class LoopExtras:
 
 
 _NO_EXTRAS = LoopExtras()
+_NO_PART = np.zeros(3)  # the fast part inside the offset when there is none: shared, so read-only
+_NO_PART.flags.writeable = False
 
 
 class FastAdaptation:
@@ -157,7 +161,7 @@ class FastAdaptation:
         self._accel_part = extras.accel_part
         if not self.s.enabled:
             return self.estimate
-        if not math.isfinite(float(v_meas.sum() + u_applied.sum() + model_acc.sum())):  # one check: nan, inf
+        if not finite_sum(v_meas, u_applied, model_acc):  # one check: nan, inf (on floats: see finite_sum)
             self.reset()
             return self.estimate
         if pose_fresh:
@@ -181,12 +185,13 @@ class FastAdaptation:
         self._fitting = self.s.mode == "dob" and self.s.step_threshold > 0.0 and x_meas is not None
         if self._fitting:
             scale = self.estimate.thrust_scale  # u_applied's thrust was divided by it: a_T is what the motors did
-            a_thrust = (float(u_applied[2]) + self.g) * scale if thrust_by_lag is None else thrust_by_lag
-            self._fit.tick(t, float(x_meas[2]), a_thrust, float(model_acc[2] - u_applied[2]) - self.g, 1.0 / scale,
-                           float(self._out[2]), pose_fresh, lag)
+            u_z, a_z = u_applied.item(2), model_acc.item(2)  # floats: numpy scalars cost ~0.1 us an operation
+            a_thrust = (u_z + self.g) * scale if thrust_by_lag is None else thrust_by_lag
+            self._fit.tick(t, x_meas.item(2), a_thrust, (a_z - u_z) - self.g, 1.0 / scale, self._out.item(2),
+                           pose_fresh, lag)
         if self._fitting and imu_theta is not None:
             self._imu_sample(t, *imu_theta)
-        stepping = self._detect_step(t, float(v_meas[2]), float(model_acc[2]), dt, thrust_sat, pose_fresh)
+        stepping = self._detect_step(t, v_meas.item(2), model_acc.item(2), dt, thrust_sat, pose_fresh)
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
             self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
@@ -213,22 +218,25 @@ class FastAdaptation:
                 self._obs = self._obs.copy()
                 self._obs[2] = v_meas[2] - self._sigma[2] / omega[2]
                 self._omega_z = float(omega[2])
-            self._obs, new_sigma = dob_step(self._obs, v_meas, model_acc, omega, dt)
+            z, sigma = dob_step_floats(self._obs.tolist(), v_meas.tolist(), model_acc.tolist(), omega.tolist(), dt)
+            self._obs = np.array(z)
         else:
             gains = L1Gains(self.s.predictor_gain, self.s.adaptation_gain, self.s.max_offset + 5.0)
             self._obs, self._sigma_hat, new_sigma = l1_step(
                 self._obs, self._sigma_hat, self._sigma, v_meas, model_acc, gains, self.omega, dt)
+            sigma = new_sigma.tolist()
         # Anti-windup, first half: the observer is fed the command as flown (clamped thrust, limited tilt), so
         # the gap between what was asked and what the limits let through is never integrated as a disturbance.
         # Projection: the estimate stays in its box (the observer is told, so it does not wind up beyond it).
         m = self.s.max_offset
-        bounded = new_sigma
-        if not all(-m <= x <= m for x in new_sigma.tolist()):  # floats: cheaper than numpy on three numbers
-            bounded = np.clip(new_sigma, -m, m)
-            self._shift_observer(bounded - new_sigma, omega)
+        bounded = np.array(sigma)
+        if not all(-m <= x <= m for x in sigma):  # floats: cheaper than numpy on three numbers
+            unbounded, bounded = bounded, np.clip(bounded, -m, m)
+            self._shift_observer(bounded - unbounded, omega)
         self._sigma = bounded
         if self.s.mode == "dob":  # a tracked step is published as fast as the observer learns it
-            self._out = smooth_step(self._out, bounded, self._omega_out_step if stepping else self.omega_out, dt)
+            omega_out = self._omega_out_step if stepping else self.omega_out
+            self._out = np.array(smooth_step_floats(self._out.tolist(), bounded.tolist(), omega_out.tolist(), dt))
         else:
             self._out = bounded
         return omega
@@ -348,27 +356,30 @@ class FastAdaptation:
                                         s.thrust_scale_bounds)
         new_gain = gain  # shared, never written: a new array when the gains move
         if u_cmd is not None and not tilt_sat and s.axis_rate > 0.0:
-            new_gain = gain.copy()
-            for i in (0, 1):  # delivered / commanded horizontal acceleration: the attitude loop's effectiveness
-                new_gain[i] = axis_transfer(float(u[i] - u_cmd[i]), float(u_cmd[i]), gain[i], s.axis_rate, dt,
-                                            s.axis_gain_bounds)
+            # delivered / commanded horizontal acceleration: the attitude loop's effectiveness (floats: numpy's
+            # scalars cost ~0.1 us an operation)
+            (ux, uy, _), (cx, cy), (kx, ky, kz) = u.tolist(), (float(u_cmd[0]), float(u_cmd[1])), gain.tolist()
+            new_gain = np.array([axis_transfer(ux - cx, cx, kx, s.axis_rate, dt, s.axis_gain_bounds),
+                                 axis_transfer(uy - cy, cy, ky, s.axis_rate, dt, s.axis_gain_bounds), kz])
         if new_scale != scale:
-            moved = sigma_after_transfer(sigma, u, self.g, scale, new_scale)
-            self._shift_observer(moved - sigma, omega)
-            self._sigma = moved
-        offset = self._with_fast_part(self._published(), stepping)
+            moved = sigma_after_transfer_floats(sigma.tolist(), u.tolist(), self.g, scale, new_scale)
+            self._shift_observer([m - x for m, x in zip(moved, sigma.tolist())], omega)
+            self._sigma = np.array(moved)
+        bounded = self._bounded_out()
+        offset = self._with_fast_part(self._published(bounded), stepping)
         # Second half: on a saturated axis the MPC's offset is held; a growing one would only push the plan
         # further into a limit it cannot act beyond (the mass estimate keeps learning from the flown thrust).
         if tilt_sat or thrust_sat:
             offset = np.where(np.array([tilt_sat, tilt_sat, thrust_sat]), est.offset, offset)
         self.estimate = AdaptationEstimate(offset, new_scale, new_gain, frozen=False, saturated=thrust_sat or tilt_sat,
                                            stepping=stepping)
-        self._engage(dt)
+        self._engage(dt, bounded)
 
-    def _engage(self, dt: float) -> None:
+    def _engage(self, dt: float, bounded: tuple[float, float, float] | None = None) -> None:
         """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the
-        offset plus what the mass estimate moved out of it (its error at hover)."""
-        x, y, z = self._bounded_out()
+        offset plus what the mass estimate moved out of it (its error at hover). ``bounded``: ``_bounded_out()``
+        when the caller has it."""
+        x, y, z = self._bounded_out() if bounded is None else bounded
         acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
         self.applied = applied_estimate(self.estimate, acts)
 
@@ -377,7 +388,7 @@ class FastAdaptation:
         tracked: the step's fit sets the vertical estimate then, and the part would count the step twice."""
         part = self._accel_part
         if part is None:
-            self._accel_applied = np.zeros(3)
+            self._accel_applied = _NO_PART
             return offset
         if stepping:
             part = np.array([part[0], part[1], 0.0])
@@ -386,10 +397,11 @@ class FastAdaptation:
         self._accel_applied = total - offset
         return total
 
-    def _published(self) -> np.ndarray:
+    def _published(self, bounded: tuple[float, float, float] | None = None) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the
-        thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag)."""
-        x, y, z = self._bounded_out()
+        thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag). ``bounded``:
+        ``_bounded_out()`` when the caller has it."""
+        x, y, z = self._bounded_out() if bounded is None else bounded
         band = self.s.offset_deadband
         return np.array([shrink(x, band), shrink(y, band), z])
 
@@ -399,16 +411,18 @@ class FastAdaptation:
         x, y, z = self._out.tolist()
         return min(max(x, -m), m), min(max(y, -m), m), min(max(z, -m), m)
 
-    def _shift_observer(self, d_sigma: np.ndarray, omega: np.ndarray | None = None) -> None:
+    def _shift_observer(self, d_sigma: np.ndarray | Sequence[float], omega: np.ndarray | None = None) -> None:
         """Make the observer report sigma + d_sigma from now on (its prediction continues from there); the
-        published offset moves with it (a re-expression, not news)."""
-        self._out = self._out + d_sigma
+        published offset moves with it (a re-expression, not news). Floats: the same numbers as the arrays'."""
+        d = d_sigma.tolist() if isinstance(d_sigma, np.ndarray) else d_sigma
+        self._out = np.array([o + x for o, x in zip(self._out.tolist(), d)])
         if self._obs is None:
             return
         if self.s.mode == "dob":
-            self._obs = self._obs - d_sigma / (self.omega if omega is None else omega)
+            w = (self.omega if omega is None else omega).tolist()
+            self._obs = np.array([z - x / wi for z, x, wi in zip(self._obs.tolist(), d, w)])
         else:
-            self._sigma_hat = self._sigma_hat + d_sigma
+            self._sigma_hat = np.array([h + x for h, x in zip(self._sigma_hat.tolist(), d)])
 
     def _sync(self, v: np.ndarray) -> None:
         if self.s.mode == "dob":
@@ -449,4 +463,16 @@ class FastAdaptation:
         return self.estimate
 
 
-__all__ = ["FastAdaptation", "LoopExtras"]
+def finite_sum(*vectors: np.ndarray) -> bool:
+    """Whether the 3-vectors' summed elements are finite (a NaN or inf anywhere makes the sum so): the number
+    ``float(v1.sum() + v2.sum() + ...)`` is, added in its order with floats (numpy's reduction costs ~1 us a
+    vector)."""
+    total = 0.0
+    for i, v in enumerate(vectors):
+        a0, a1, a2 = v.tolist()
+        part = (a0 + a1) + a2
+        total = part if i == 0 else total + part
+    return math.isfinite(total)
+
+
+__all__ = ["FastAdaptation", "LoopExtras", "finite_sum"]

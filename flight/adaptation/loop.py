@@ -13,7 +13,7 @@ mocap is stale (inside ``FastAdaptation``); re-based when the model slot's versi
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -32,6 +32,8 @@ from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
 
 GROUND_MARGIN = 0.1  # m above the floor: below, the ground carries part of the weight
+_NO_RESIDUAL = np.zeros(3)  # the model's residual without a model: shared, so read-only
+_NO_RESIDUAL.flags.writeable = False
 _RESET_STATES = ("IDLE", "PREFLIGHT", "LANDED", "EMERGENCY")
 _FROZEN_STATES = ("LAND",)
 
@@ -109,19 +111,18 @@ class LoopAdaptation:
         self._low = state == "TRACK" and not airborne
         if self.layer.stalled(now):  # a stalled host: the lags start from the new pose too
             self.lags.forget_velocity()
-        x = np.concatenate((measured_position(est), est.v))
-        bz = body_z(est.q)
+        x = measured_state(est)
+        bz = body_z_floats(est.q)
         u_flown = self.flown_acc(bz)
         coeffs = self.coefficients
         predicted = self._r if coeffs is None else coeffs.prediction(self._r)
         if airborne:  # the lag bank learns from the same frames as the layer
             e = self.layer.estimate
-            self.lags.observe(float(est.v[2]), float(bz[2]), self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
-                              float(predicted[2] + e.offset[2]), pose_fresh, learn=not (e.stepping or self._sat[0]))
+            self.lags.observe(est.v.item(2), bz[2], self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
+                              predicted.item(2) + e.offset.item(2), pose_fresh, learn=not (e.stepping or self._sat[0]))
         else:
             self.lags.forget_velocity()
-        acting = self.lags.acting_all()
-        by_lag = None if acting is None else acting * float(bz[2]) / self.vehicle.mass
+        by_lag = self.lags.acting_scaled(bz[2], self.vehicle.mass)
         imu = self._imu_theta(now, est) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
@@ -201,13 +202,13 @@ class LoopAdaptation:
                 self._accel = accel_step(self._accel, imu.t, d, tuning)
         return accel_part(self._accel, now, tuning)
 
-    def flown_acc(self, bz: np.ndarray) -> np.ndarray:
-        """The last command as flown: the acting thrust along the measured body z axis ``bz``, over the estimated
-        mass."""
+    def flown_acc(self, bz: Sequence[float]) -> np.ndarray:
+        """The last command as flown: the acting thrust along the measured body z axis ``bz`` (three floats), over
+        the estimated mass."""
         mass = self.vehicle.mass * self.layer.estimate.thrust_scale
         acting = self.lags.acting()
         k = (self._thrust if acting is None else acting) / mass
-        x, y, z = bz.tolist()  # floats: one array built, not three
+        x, y, z = bz  # floats: one array built, not three
         return np.array([k * x, k * y, k * z - self.vehicle.gravity])
 
     def residual(self, model_residual: ResidualLinearisation | None, horizon: int) -> ResidualLinearisation | None:
@@ -227,7 +228,9 @@ class LoopAdaptation:
             zero = self._zeros.get(horizon)
             if zero is None:
                 zero = self._zeros[horizon] = ResidualLinearisation.zeros(horizon)
-            return ResidualLinearisation(np.broadcast_to(offset, zero.c.shape), zero.jx, zero.ju)
+            c = np.empty(zero.c.shape)  # the offset on every stage: a fill costs a tenth of np.broadcast_to
+            c[:] = offset
+            return ResidualLinearisation(c, zero.jx, zero.ju)
         return ResidualLinearisation(model_residual.c + offset, model_residual.jx, model_residual.ju)
 
     def shaping(self) -> CommandShaping:
@@ -238,7 +241,7 @@ class LoopAdaptation:
                       model_residual: ResidualLinearisation | None) -> None:
         """Remember what was flown: the command after the limits, the thrust sent, the model's residual for it."""
         u = np.asarray(shaped.applied_acc, dtype=float)
-        r = np.zeros(3)
+        r = _NO_RESIDUAL
         if model_residual is not None:  # stage 0 of the model's own linearisation (no extra network pass)
             r = model_residual.c[0] + model_residual.jx[0] @ x0 + model_residual.ju[0] @ u
             if self.coefficients is not None:  # the thrust's effectiveness is the thrust scale's (composite.py)
@@ -333,20 +336,29 @@ def accel_tuning(layer: FastAdaptation) -> AccelTuning | None:
                        s.accel_stale_s)
 
 
-def measured_position(est: Any) -> np.ndarray:
-    """The newest mocap frame's position carried to the estimate's time with the estimated velocity (the filter's
-    own position lags under a sudden acceleration, which would bias the step fit); the filter's without one."""
+def measured_state(est: Any) -> np.ndarray:
+    """(position, velocity) in one array. The position is the newest mocap frame's carried to the estimate's time
+    with the estimated velocity (the filter's own position lags under a sudden acceleration, which would bias the
+    step fit); the filter's without one. Floats: p + (t - t_frame) v element by element, the arrays' numbers."""
+    v = est.v.tolist()
     frame = getattr(est, "frame", None)
     if frame is None:
-        return est.p
+        return np.array([*est.p.tolist(), *v])
     t_frame, p = frame
-    return p + (est.t - t_frame) * est.v
+    dt = est.t - t_frame
+    px, py, pz = p.tolist()
+    return np.array([px + dt * v[0], py + dt * v[1], pz + dt * v[2], *v])
 
 
 def body_z(q: Any) -> np.ndarray:
     """The body z axis in the world from a (w, x, y, z) quaternion."""
+    return np.array(body_z_floats(q))
+
+
+def body_z_floats(q: Any) -> tuple[float, float, float]:
+    """``body_z`` as three floats (what the tick's scalar arithmetic reads, without an array between)."""
     w, x, y, z = np.asarray(q, dtype=float).tolist()
-    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
+    return 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
-__all__ = ["GROUND_MARGIN", "LoopAdaptation", "body_z"]
+__all__ = ["GROUND_MARGIN", "LoopAdaptation", "body_z", "body_z_floats", "measured_state"]
