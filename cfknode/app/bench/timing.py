@@ -122,7 +122,7 @@ class _TimedLayer:
         self._timed("after_command", *args)
 
     def log(self) -> Any:
-        """The loop asks for the layer's /adaptation message inside every tick: the last call of the tick."""
+        """The loop asks for the layer's /adaptation message every tick, after the setpoint is sent: timed with the rest."""
         out = self._timed("log")
         self.seconds.append(self._tick)
         return out
@@ -148,7 +148,7 @@ def layer_tick(cfg: Config, mpc: TranslationalMpc, seconds: float) -> Timing:
         ref = circle_samples(controller.preview_times(t), 0.5, 0.4, 1.0)
         # As in flight: a mocap frame every tick and an accelerometer sample at 100 Hz, both read by the layer.
         command = controller.step(t, StateEstimate(t, p, v, q, 0.0, frame=(t, p.copy()), imu=imu), ref)
-        controller.adaptation.log()  # type: ignore[union-attr] - the loop logs /adaptation inside the tick
+        controller.adaptation.log()  # type: ignore[union-attr] - the loop logs /adaptation every tick
         target = read_setpoint(command.setpoint, vehicle, 0.0, tc)
         if i % 4 == 0:
             imu = ImuSample(t, np.array([0.0, 0.0, target.thrust_n / (1.2 * vehicle.mass)]))
