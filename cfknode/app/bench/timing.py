@@ -122,7 +122,7 @@ class _TimedLayer:
         self._timed("after_command", *args)
 
     def log(self) -> Any:
-        """The loop asks for the layer's /adaptation message every tick, after the setpoint is sent: timed with the rest."""
+        """The loop asks for the layer's /adaptation message every tick, after the send: timed with the rest."""
         out = self._timed("log")
         self.seconds.append(self._tick)
         return out
