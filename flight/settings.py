@@ -130,11 +130,9 @@ class EstimatorConfig:
     command_delay_z: float | None = setting(None, unit="s", low=0, high=0.2,
         doc="the vertical axis's command delay (motors only, no attitude loop); null = command_delay")
     command_residual_tau: float = setting(0.0, unit="s", low=0, high=10,
-        doc="low-pass of the acceleration the commands leave unexplained (drag), added to the command "
-            "delay's prediction; 0 = commands alone")
+        doc="time constant of the acceleration the commands leave unexplained (drag), added to the prediction; 0 = off")
     command_lag: float = setting(0.0, unit="s", low=0, high=1,
-        doc="x/y of the command delay's prediction: 0 = the commands act after command_delay; > 0 = they act "
-            "through a first-order lag of this time constant (the attitude loop), predicted over command_delay")
+        doc="0: x/y fly the commands after command_delay; > 0: through a first-order lag of this time constant")
     attitude_lag: float = setting(0.17, unit="s", low=0, high=1,
         doc="lag of the commanded x/y acceleration the filter predicts with between frames; 0: at once")
 
