@@ -340,12 +340,10 @@ class _Loop:
         if tick.ref is tick.samples and self.held is None:
             plan_ref = self.traj.sample(self.controller.preview_times(now + path.delay))
             if path.delay_z != path.delay:
-                # The vertical state is the one at now + delay_z: plan its error there, a delay's reference apart.
-                both = self.traj.sample(np.array([now + path.delay_z, now + path.delay]))
-                p, v = plan_est.p.copy(), plan_est.v.copy()
-                p[2] += both.p[1, 2] - both.p[0, 2]
-                v[2] += both.v[1, 2] - both.v[0, 2]
-                plan_est = dataclasses.replace(plan_est, p=p, v=v)
+                # z is predicted over its own delay: its reference from there too, or its feed-forward acts early.
+                z = self.traj.sample(self.controller.preview_times(now + path.delay_z))
+                plan_ref = dataclasses.replace(plan_ref, **{k: _with_z(getattr(plan_ref, k), getattr(z, k))
+                                                            for k in ("p", "v", "a")})
         return plan_est, plan_ref
 
     def record(self, tick: _Tick) -> None:
@@ -418,6 +416,13 @@ class _Loop:
 _NAN = float("nan")
 _NAN3 = np.full(3, np.nan)
 _NAN3.flags.writeable = False
+
+
+def _with_z(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``xy`` (n, 3) with the vertical column of ``z``."""
+    out = np.array(xy, dtype=float)
+    out[:, 2] = z[:, 2]
+    return out
 
 
 @dataclass(frozen=True)

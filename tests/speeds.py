@@ -280,6 +280,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_vertical_delay_and_residual_settings_are_checked": FAST,
         "test_lag_increments_match_the_first_order_lag_exactly": FAST,
         "test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command": FAST,
+        "test_a_vertical_delay_of_its_own_takes_the_vertical_reference_from_there": FAST,
     },
     "test_learner_with_layer.py": FLIES,
     "test_link_driver.py": FAST,

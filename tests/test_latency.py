@@ -211,13 +211,22 @@ def test_vertical_delay_and_residual_settings_are_checked():
 
 def test_the_compensation_tracks_a_fast_small_loop(tmp_path):
     # circle r=0.3 v=1.5 of the learning bench, nominal MPC, 3 s of pattern, seed 0: the attitude loop's lag
-    # dominates. Uncompensated the MSE is 0.0337 m^2; with the lag model below 0.00169 (docs/history.md).
+    # dominates. Uncompensated the MSE is 0.0337 m^2; with the lag model below 0.00168 (docs/history.md).
     from cfknode.app.bench.learning_cells import CELLS
 
     cell = next(c for c in CELLS if c.name == "circle r=0.3 v=1.5")
     overrides = cell.config("nominal", 0, str(tmp_path), 3.0)
     overrides.update({"estimator.command_delay": 0.10, "estimator.command_lag": 0.17,
-                      "estimator.command_delay_z": 0.02, "estimator.command_residual_tau": 0.05})
+                      "estimator.command_delay_z": 0.0, "estimator.command_residual_tau": 0.05})
     res = run_flight(load_config(overrides=overrides), name_hint="loop")
     assert res.outcome.message.startswith("flight complete")
     assert res.summary.mse < 0.005
+
+
+def test_a_vertical_delay_of_its_own_takes_the_vertical_reference_from_there():
+    from cfknode.flight.loop import _with_z
+
+    xy = np.arange(6.0).reshape(2, 3)
+    z = -np.arange(6.0).reshape(2, 3)
+    np.testing.assert_array_equal(_with_z(xy, z), [[0.0, 1.0, -2.0], [3.0, 4.0, -5.0]])
+    assert xy[0, 2] == 2.0  # the planned reference is a copy
