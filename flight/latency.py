@@ -32,19 +32,13 @@ def held_increments(times: np.ndarray, accs: np.ndarray, a: float, b: float) -> 
     """Over [a, b] of commands held from ``times[k]`` to ``times[k+1]`` (the last one on): the velocity
     gained, the integral of acc, and the position the same accelerations give if flown from ``a``,
     the integral of (b - s) acc(s). Before ``times[0]`` nothing is known: zero (coast)."""
-    dv = np.zeros(accs.shape[1] if accs.ndim == 2 else 3)
-    dp = np.zeros_like(dv)
-    n = len(times)
-    for k in range(n):
-        lo = max(float(times[k]), a)
-        hi = min(float(times[k + 1]) if k + 1 < n else math.inf, b)
-        if hi <= lo:
-            continue
-        h = hi - lo
-        dv += h * accs[k]
-        # The integral of (b - s) over [lo, hi]: h times (b - midpoint).
-        dp += h * (b - 0.5 * (lo + hi)) * accs[k]
-    return dv, dp
+    if len(times) == 0 or b <= a:
+        return np.zeros(3), np.zeros(3)
+    lo = np.maximum(times, a)
+    hi = np.minimum(np.append(times[1:], b), b)
+    h = np.maximum(hi - lo, 0.0)
+    # The integral of (b - s) over [lo, hi]: h times (b - midpoint); vectorised, it runs every tick.
+    return h @ accs, (h * (b - 0.5 * (lo + hi))) @ accs
 
 
 def lag_increments(a0: np.ndarray, u: np.ndarray, tau: float, h: float) -> tuple[np.ndarray, np.ndarray]:
