@@ -67,7 +67,8 @@ class VelocityEstimator:
         self._attitude_lag = config.attitude_lag
         self._flown = np.zeros(3)  # the commanded acceleration through the attitude loop's lag (x, y)
         # The command path's delay: ``ahead`` predicts across it (flight/latency.py).
-        self.command_path = CommandDelayPredictor(config.command_delay)
+        self.command_path = CommandDelayPredictor(config.command_delay, config.command_delay_z,
+                                                  config.command_residual_tau, config.command_lag)
         # History rows 0..n-1: row 0 is the last fused frame (the anchor), later rows
         # the predictions made since. acc[i] is the input over (t[i-1], t[i]].
         self._t = np.zeros(_HISTORY)

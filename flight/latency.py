@@ -5,60 +5,179 @@ A command sent at t reaches the motors' thrust only after the radio hold (up to 
 ``estimator.command_delay`` seconds. Over [t, t + delay] the vehicle therefore flies the
 commands already sent in [t - delay, t), which are known, so the state at t + delay is a
 kinematic prediction from the estimate at t (a Smith predictor on the translational model).
+
+The commands are not all the vehicle flies: the rotor drag (0.25 m/s^2 per m/s) and whatever the
+fast layer leaves act too, and a prediction on the commands alone is off by them times the delay
+(on the slow default circle that made the MPC's error 5x larger, docs/history.md). With
+``estimator.command_residual_tau`` the predictor measures that part over the last delay (the
+estimate's velocity change less the commands' share) and predicts with it, low-passed.
+
+A tilt does not arrive after a delay but through the attitude loop's lag (63 % after ~0.15 s); with
+``estimator.command_lag`` the horizontal prediction relaxes the acting acceleration toward the newest
+command over ``command_delay`` instead. The vertical path is the motors' alone (~16 ms):
+``estimator.command_delay_z`` gives it its own, shorter delay.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 from typing import Any
 
 import numpy as np
 
 
-class CommandDelayPredictor:
-    """Keeps the commanded accelerations of the last ``delay`` seconds; ``ahead`` shifts an estimate."""
+def held_increments(times: np.ndarray, accs: np.ndarray, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+    """Over [a, b] of commands held from ``times[k]`` to ``times[k+1]`` (the last one on): the velocity
+    gained, the integral of acc, and the position the same accelerations give if flown from ``a``,
+    the integral of (b - s) acc(s). Before ``times[0]`` nothing is known: zero (coast)."""
+    if len(times) == 0 or b <= a:
+        return np.zeros(3), np.zeros(3)
+    lo = np.maximum(times, a)
+    hi = np.minimum(np.append(times[1:], b), b)
+    h = np.maximum(hi - lo, 0.0)
+    # The integral of (b - s) over [lo, hi]: h times (b - midpoint); vectorised, it runs every tick.
+    return h @ accs, (h * (b - 0.5 * (lo + hi))) @ accs
 
-    def __init__(self, delay: float) -> None:
-        if delay < 0.0:
-            raise ValueError(f"command delay must be >= 0 s, got {delay}")
+
+def lag_increments(a0: np.ndarray, u: np.ndarray, tau: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Over ``h`` s of an acceleration relaxing from ``a0`` toward the held ``u`` with time constant ``tau``:
+    the velocity gained and the position gained from rest (exact for the first-order lag)."""
+    k = -math.expm1(-h / tau)  # 1 - exp(-h / tau)
+    dv = u * h + (a0 - u) * (tau * k)
+    dp = u * (0.5 * h * h) + (a0 - u) * (tau * (h - tau * k))
+    return dv, dp
+
+
+def unexplained_acceleration(v_now: np.ndarray, v_then: np.ndarray, flown_dv: np.ndarray, span: float) -> np.ndarray:
+    """The mean acceleration over ``span`` seconds the commands do not account for (drag, the layer's rest)."""
+    return (np.asarray(v_now, float) - np.asarray(v_then, float) - flown_dv) / span
+
+
+class CommandDelayPredictor:
+    """Keeps the commands of the last delays; ``ahead`` shifts an estimate across the command path.
+
+    ``delay`` is the horizontal axes' (and the vertical's unless ``delay_z`` is given); the vertical
+    path has no attitude loop, only the motors, so it is an order shorter. The estimate ``ahead``
+    returns is stamped ``est.t + delay``: with a shorter vertical delay the vertical state is the one
+    predicted at ``est.t + delay_z``, which the caller takes as the vertical error that far ahead.
+    ``residual_tau`` > 0: correct the prediction by the low-passed unexplained acceleration.
+    """
+
+    def __init__(self, delay: float, delay_z: float | None = None, residual_tau: float = 0.0,
+                 lag: float = 0.0) -> None:
+        if min(delay, residual_tau, lag) < 0.0 or (delay_z is not None and delay_z < 0.0):
+            raise ValueError(f"command delays, lag and residual_tau must be >= 0 s, got "
+                             f"{delay}, {delay_z}, {lag}, {residual_tau}")
         self.delay = delay
+        self.delay_z = delay if delay_z is None else delay_z
+        self.residual_tau = residual_tau
+        # lag > 0: x and y fly the commands through a first-order lag (the attitude loop), not a delay.
+        self.lag = lag
+        self._flown = np.zeros(3)  # the lagged acceleration at ``_flown_t`` (x, y used)
+        self._flown_t: float | None = None
+        self._flown_sum = np.zeros(3)  # its integral since the first command (the residual's model share)
         self._sent: deque[tuple[float, np.ndarray]] = deque()
+        # (t, v, the lagged acceleration's integral) at each estimate ``ahead`` was given
+        self._seen: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        self.residual = np.zeros(3)
+        self._residual_t: float | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.delay > 0.0 or self.delay_z > 0.0
+
+    def _delays(self) -> np.ndarray:
+        return np.array([self.delay, self.delay, self.delay_z])
 
     def reset(self) -> None:
         self._sent.clear()
+        self._seen.clear()
+        self.residual = np.zeros(3)
+        self._residual_t = None
+        self._flown = np.zeros(3)
+        self._flown_t = None
+        self._flown_sum = np.zeros(3)
+
+    def _relax(self, t: float) -> None:
+        """Bring the lagged acceleration to ``t`` under the newest command sent."""
+        if self.lag <= 0.0 or self._flown_t is None or t <= self._flown_t or not self._sent:
+            return
+        u = self._sent[-1][1]
+        dv, _ = lag_increments(self._flown, u, self.lag, t - self._flown_t)
+        self._flown_sum += dv
+        self._flown = u + (self._flown - u) * math.exp(-(t - self._flown_t) / self.lag)
+        self._flown_t = t
 
     def note(self, t: float, acc: np.ndarray) -> None:
         """The command sent at ``t`` (held until the next one)."""
-        if self.delay <= 0.0:
+        if not self.active:
             return
+        self._relax(t)
+        if self._flown_t is None:
+            self._flown_t = t
         self._sent.append((t, np.array(acc, dtype=float)))
-        # Keep the newest command sent at or before t - delay: it is still acting at t.
-        while len(self._sent) > 1 and self._sent[1][0] <= t - self.delay:
+        # Keep the newest command sent at or before t - reach: it is still acting then.
+        reach = max(self.delay, self.delay_z) * (2.0 if self.residual_tau > 0.0 else 1.0)
+        while len(self._sent) > 1 and self._sent[1][0] <= t - reach:
             self._sent.popleft()
 
     def ahead(self, est: Any) -> Any:
-        """``est`` (with t, p, v) moved to ``est.t + delay`` under the commands in flight."""
-        if self.delay <= 0.0 or not self._sent:
+        """``est`` (with t, p, v) moved across the command path under the commands in flight."""
+        if not self.active or not self._sent:
             return est
         t = est.t
+        times = np.array([s for s, _ in self._sent])
+        accs = np.array([a for _, a in self._sent])
+        self._relax(t)
+        if self.residual_tau > 0.0:
+            self._learn(t, np.asarray(est.v, float), times, accs)
         p = np.array(est.p, dtype=float)
         v = np.array(est.v, dtype=float)
-        start = t - self.delay
-        items = list(self._sent)
-        for k, (s, acc) in enumerate(items):
-            end = items[k + 1][0] if k + 1 < len(items) else t
-            a, b = max(s, start), min(end, t)
-            h = b - a
-            if h <= 0.0:
-                continue
-            p += v * h + 0.5 * h * h * acc
-            v += h * acc
-        # Any part of the window before the oldest command kept: no known input, coast.
-        gap = items[0][0] - start
-        if gap > 0.0:
-            p += v * gap
+        for d, axes in self._groups():
+            if self.lag > 0.0 and d < 0.0:  # the lagged axes, over the horizontal delay
+                d = self.delay
+                dv, dp = lag_increments(self._flown, self._sent[-1][1], self.lag, d)
+            else:
+                dv, dp = held_increments(times, accs, t - d, t)
+            extra = self.residual[axes]
+            p[axes] += v[axes] * d + dp[axes] + 0.5 * d * d * extra
+            v[axes] += dv[axes] + d * extra
         return dataclasses.replace(est, t=t + self.delay, p=p, v=v)
 
+    def _groups(self) -> list[tuple[float, np.ndarray]]:
+        """Axes sharing a model, as (delay, index array); delay -1 marks x and y through the lag."""
+        if self.lag > 0.0:
+            return [(-1.0, np.array([0, 1])), (self.delay_z, np.array([2]))]
+        return _groups(self._delays())
 
-__all__ = ["CommandDelayPredictor"]
+    def _learn(self, t: float, v: np.ndarray, times: np.ndarray, accs: np.ndarray) -> None:
+        """Update the unexplained acceleration from the velocity change over the last delay (per axis)."""
+        self._seen.append((t, v.copy(), self._flown_sum.copy()))
+        d_max = max(self.delay, self.delay_z)
+        while len(self._seen) > 1 and self._seen[1][0] <= t - d_max:
+            self._seen.popleft()
+        then_t, then_v, then_sum = self._seen[0]
+        span = t - then_t
+        if span < d_max or d_max <= 0.0:
+            return  # not a whole delay seen yet
+        # Over [then_t, t] the vehicle flew the commands sent a delay before (per axis group).
+        flown = np.zeros(3)
+        for d, axes in self._groups():
+            if d < 0.0:
+                flown[axes] = (self._flown_sum - then_sum)[axes]
+            else:
+                flown[axes] = held_increments(times, accs, then_t - d, t - d)[0][axes]
+        measured = unexplained_acceleration(v, then_v, flown, span)
+        h = t - self._residual_t if self._residual_t is not None else 0.0
+        self._residual_t = t
+        self.residual = self.residual + (-math.expm1(-h / self.residual_tau)) * (measured - self.residual)
+
+
+def _groups(delays: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """Axes sharing a delay, as (delay, index array)."""
+    return [(float(d), np.flatnonzero(delays == d)) for d in np.unique(delays)]
+
+
+__all__ = ["CommandDelayPredictor", "held_increments", "lag_increments", "unexplained_acceleration"]

@@ -307,13 +307,9 @@ class _Loop:
         command = None
         if not self.controller_failed:
             try:
-                plan_est, plan_ref, delay = est, ref, self.parts.estimator.command_path.delay
-                if delay > 0.0:
-                    # Plan from where the vehicle will be when this command acts (flight/latency.py);
-                    # a reference the supervisor replaced (landing, fence) is flown as it is.
-                    plan_est = self.parts.estimator.command_path.ahead(est)
-                    if ref is tick.samples and self.held is None:
-                        plan_ref = self.traj.sample(controller.preview_times(now + delay))
+                plan_est, plan_ref = est, ref
+                if self.parts.estimator.command_path.active:
+                    plan_est, plan_ref = self.ahead(tick)
                 command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
                                           phase=self.sup.state.value, observed=est,
                                           brake_tilt_deg=self.sup.brake_tilt_deg)
@@ -335,6 +331,20 @@ class _Loop:
             self.rec.fallbacks += 1
             self.rec.fallback_reasons[tick.status] = self.rec.fallback_reasons.get(tick.status, 0) + 1
         self.acc_prev, tick.sp = command.acc, command.setpoint
+
+    def ahead(self, tick: _Tick) -> tuple[Any, Any]:
+        """The state and reference the MPC plans from: where the vehicle will be when this command acts
+        (flight/latency.py); a reference the supervisor replaced (landing, fence) is flown as it is."""
+        path, now = self.parts.estimator.command_path, tick.now
+        plan_est, plan_ref = path.ahead(tick.est), tick.ref
+        if tick.ref is tick.samples and self.held is None:
+            plan_ref = self.traj.sample(self.controller.preview_times(now + path.delay))
+            if path.delay_z != path.delay:
+                # z is predicted over its own delay: its reference from there too, or its feed-forward acts early.
+                z = self.traj.sample(self.controller.preview_times(now + path.delay_z))
+                plan_ref = dataclasses.replace(plan_ref, **{k: _with_z(getattr(plan_ref, k), getattr(z, k))
+                                                            for k in ("p", "v", "a")})
+        return plan_est, plan_ref
 
     def record(self, tick: _Tick) -> None:
         """The supervisor's view of the tick, the record, the log and the observers."""
@@ -406,6 +416,13 @@ class _Loop:
 _NAN = float("nan")
 _NAN3 = np.full(3, np.nan)
 _NAN3.flags.writeable = False
+
+
+def _with_z(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``xy`` (n, 3) with the vertical column of ``z``."""
+    out = np.array(xy, dtype=float)
+    out[:, 2] = z[:, 2]
+    return out
 
 
 @dataclass(frozen=True)

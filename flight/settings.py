@@ -129,6 +129,12 @@ class EstimatorConfig:
         doc="mocap latency the estimator predicts across (0 = none assumed)")
     command_delay: float = setting(0.0, unit="s", low=0, high=0.2,
         doc="from a sent command to its acceleration: the MPC plans from the state this far ahead; 0 = off")
+    command_delay_z: float | None = setting(None, unit="s", low=0, high=0.2,
+        doc="the vertical axis's command delay (motors only, no attitude loop); null = command_delay")
+    command_residual_tau: float = setting(0.0, unit="s", low=0, high=10,
+        doc="time constant of the acceleration the commands leave unexplained (drag), added to the prediction; 0 = off")
+    command_lag: float = setting(0.0, unit="s", low=0, high=1,
+        doc="0: x/y fly the commands after command_delay; > 0: through a first-order lag of this time constant")
     attitude_lag: float = setting(0.17, unit="s", low=0, high=1,
         doc="lag of the commanded x/y acceleration the filter predicts with between frames; 0: at once")
 
