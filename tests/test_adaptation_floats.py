@@ -1,4 +1,4 @@
-"""The fast layer's float twins give the array functions' numbers to the last bit (they replace them on the tick)."""
+"""The fast layer's float math gives the numbers its former numpy expressions gave, to the last bit."""
 
 from __future__ import annotations
 
@@ -30,15 +30,23 @@ def test_the_observers_float_twins_are_bit_identical() -> None:
         z, v, a, sigma, out, u = vectors(rng, 6)
         omega = np.abs(vectors(rng, 1, 10.0)[0])
         dt = float(rng.uniform(1e-4, 0.05))
-        z_new, s_new = dob_step(z, v, a, omega, dt)
+        # References: the numpy expressions the layer ran on arrays before the float rewrite.
+        s_ref = omega * (v - z)
+        z_ref = z + dt * (a + s_ref)
         zf, sf = dob_step_floats(z.tolist(), v.tolist(), a.tolist(), omega.tolist(), dt)
-        assert same(zf, z_new) and same(sf, s_new)
+        assert same(zf, z_ref) and same(sf, s_ref)
+        z_new, s_new = dob_step(z, v, a, omega, dt)  # the array face gives the same
+        assert same(tuple(z_new), z_ref) and same(tuple(s_new), s_ref)
         omega_out = np.array([omega[0], math.inf, omega[2] * 1e3])  # inf passes sigma; a large pole clips at 1
-        assert same(smooth_step_floats(out.tolist(), sigma.tolist(), omega_out.tolist(), dt),
-                    smooth_step(out, sigma, omega_out, dt))
+        out_ref = out + np.minimum(1.0, omega_out * dt) * (sigma - out)
+        assert same(smooth_step_floats(out.tolist(), sigma.tolist(), omega_out.tolist(), dt), out_ref)
+        assert same(tuple(smooth_step(out, sigma, omega_out, dt)), out_ref)
         s_old, s_new_scale = float(rng.uniform(0.4, 2.0)), float(rng.uniform(0.4, 2.0))
-        assert same(sigma_after_transfer_floats(sigma.tolist(), u.tolist(), 9.81, s_old, s_new_scale),
-                    sigma_after_transfer(sigma.copy(), u, 9.81, s_old, s_new_scale))
+        force = u + sigma
+        force[2] = (u[2] + 9.81) + sigma[2]
+        moved_ref = sigma + (s_new_scale / s_old - 1.0) * force
+        assert same(sigma_after_transfer_floats(sigma.tolist(), u.tolist(), 9.81, s_old, s_new_scale), moved_ref)
+        assert same(tuple(sigma_after_transfer(sigma.copy(), u, 9.81, s_old, s_new_scale)), moved_ref)
 
 
 def test_finite_sum_is_the_summed_arrays_finiteness() -> None:

@@ -1,9 +1,9 @@
 """The fast layer's estimator as pure functions: observer, output filter, and the moves between its estimates.
 
 Each takes arrays and returns new ones (no state). The weights of a learned model's residual beside the
-constant offset are fitted in ``composite.py``. The ``*_floats`` twins take and return three floats: the layer
-runs them every tick, where numpy's per-call cost on 3-vectors (~1 us an operation) was most of the work; the
-same operations in the same order, so the same numbers to the last bit.
+constant offset are fitted in ``composite.py``. The math of the observer step, the output filter and the
+thrust transfer is written once, on three floats (``*_floats``): the layer runs those every tick, where numpy's
+per-call cost on 3-vectors (~1 us an operation) was most of the work; the array functions wrap them.
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ def dob_step(z: np.ndarray, v: np.ndarray, a_model: np.ndarray, omega: np.ndarra
     """First-order disturbance observer: sigma = omega (v - z), z' = a_model + sigma.
 
     sigma is the low-pass (cut-off omega) of v' - a_model without differentiating v. Returns (z, sigma)."""
-    sigma = omega * (v - z)
-    return z + dt * (a_model + sigma), sigma
+    w = np.broadcast_to(np.asarray(omega, dtype=float), (3,)).tolist()
+    z_new, sigma = dob_step_floats(z.tolist(), v.tolist(), a_model.tolist(), w, dt)
+    return np.array(z_new), np.array(sigma)
 
 
 Floats3 = tuple[float, float, float]
@@ -62,7 +63,8 @@ def smooth_step(out: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float
     The observer's sigma = omega (v - z) carries the velocity estimate's noise at gain omega, unfiltered: in
     quiet flight it is that noise, almost all of it far above the observer's band (docs/history.md).
     Behind this second pole it rolls off as 1/f."""
-    return out + np.minimum(1.0, omega * dt) * (sigma - out)
+    w = np.broadcast_to(np.asarray(omega, dtype=float), (3,)).tolist()
+    return np.array(smooth_step_floats(out.tolist(), sigma.tolist(), w, dt))
 
 
 def smooth_step_floats(out: Sequence[float], sigma: Sequence[float], omega: Sequence[float], dt: float) -> Floats3:
@@ -109,9 +111,7 @@ def sigma_after_transfer(sigma: np.ndarray, u: np.ndarray, g: float, s_old: floa
     """sigma once the thrust scale changed, so model + layer predicts the same acceleration.
 
     A larger s sends more thrust for the same u (the plant does more): sigma grows by (ds / s)(u + g e_z + sigma)."""
-    force = u + sigma
-    force[2] = (u[2] + g) + sigma[2]  # u + g e_z + sigma, without a fourth array
-    return sigma + (s_new / s_old - 1.0) * force
+    return np.array(sigma_after_transfer_floats(sigma.tolist(), u.tolist(), g, s_old, s_new))
 
 
 def sigma_after_transfer_floats(sigma: Sequence[float], u: Sequence[float], g: float, s_old: float,
