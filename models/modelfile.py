@@ -36,6 +36,7 @@ import numpy as np
 
 from cfknode.kernel.bounded_input import describe_os_error, load_json, open_regular
 from cfknode.kernel.outputs import output_problem
+from cfknode.models.input_bounds import BOUNDS_KEY, bounds_problem
 from cfknode.models.residual_check import SCORE_KEY, score_problem
 
 FORMAT_NAME = "cfknode.knode"
@@ -334,6 +335,8 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     info = None if training is None else _training_from(training, name)
     extra = meta.get("extra", {})
     problem = score_problem(extra.get(SCORE_KEY)) if isinstance(extra, Mapping) else None
+    if not problem and isinstance(extra, Mapping):
+        problem = bounds_problem(extra.get(BOUNDS_KEY), len(networks))
     if problem:
         raise ModelFileError(f"model file {name}: {problem}")
     return ModelFile(

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cfknode.models.input_bounds import stored_bounds
 from cfknode.models.modelfile import N_IN, N_OUT, ModelFile
 from cfknode.models.residual_check import stored_score
 
@@ -49,6 +50,9 @@ class ResidualQueue:
         self._out_bias = layers[-1].bias.sum(axis=0) if layers else np.zeros((1, N_OUT))
         # cfknode train's held-out per-axis score beside the fast layer (residual_check.py); None: not stored.
         self.beyond_layer: np.ndarray | None = None
+        # Per network, the inputs' range it was trained on, (p, 1, n_in) each (input_bounds.py); None: unbounded.
+        self._low: np.ndarray | None = None
+        self._high: np.ndarray | None = None
 
     @classmethod
     def from_model_file(cls, mf: ModelFile) -> ResidualQueue:
@@ -83,6 +87,9 @@ class ResidualQueue:
             )
         queue = cls(tuple(stacked), mf.activation, len(mf.networks), default)
         queue.beyond_layer = stored_score(mf.extra)
+        bounds = stored_bounds(mf.extra, len(mf.networks))
+        if bounds is not None and bounds.shape[2] == stacked[0].weight.shape[2]:
+            queue._low, queue._high = bounds[:, None, 0, :], bounds[:, None, 1, :]
         return queue
 
     @property
@@ -118,6 +125,8 @@ class ResidualQueue:
             out = np.zeros((n, N_OUT))
         else:
             h = self._inputs(x2, u2, nb)  # (N, n_in), broadcast over the network axis by matmul
+            if self._low is not None:  # each network where it saw data: (p, N, n_in)
+                h = np.clip(h, self._low, self._high)
             for layer in self._layers[:-1]:
                 h = _activate(np.matmul(h, layer.weight_t) + layer.bias, self._activation)
             out = np.matmul(h, self._layers[-1].weight_t).sum(axis=0) + self._out_bias
@@ -140,7 +149,7 @@ class ResidualQueue:
         z = self._inputs(x_nodes, u_nodes, nb)
         p = self.n_networks
         # Forward pass keeping each hidden layer's activation derivative, (p, N, h).
-        h = z
+        h = z if self._low is None else np.clip(z, self._low, self._high)
         slopes = []
         for layer in self._layers[:-1]:
             h, slope = _activate_with_slope(np.matmul(h, layer.weight_t) + layer.bias, self._activation)
@@ -155,6 +164,9 @@ class ResidualQueue:
             g = np.matmul(g, self._layers[i].weight)  # (p, N*3, h_in)
             if i > 0:
                 g = (g.reshape(p, n, N_OUT, -1) * slopes[i - 1][:, :, None, :]).reshape(p, n * N_OUT, -1)
+        if self._low is not None:  # held at the edge of a network's data: no slope along a clamped input
+            inside = ((z > self._low) & (z < self._high)).astype(np.float64)  # (p, N, n_in)
+            g = (g.reshape(p, n, N_OUT, -1) * inside[:, :, None, :]).reshape(p, n * N_OUT, -1)
         jz = g.sum(axis=0).reshape(n, N_OUT, z.shape[1])  # d r / d (v, u[, d])
         jx[:, :, 3:6] = jz[:, :, 0:3]
         ju = np.ascontiguousarray(jz[:, :, 3:6])

@@ -41,6 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from cfknode.models.input_bounds import BOUNDS_KEY, data_bounds, queue_bounds
 from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
 from cfknode.models.modelfile import ModelFile, Normalisation
 
@@ -97,6 +98,8 @@ class TrainerSettings:
     # Modules the child imports before it reports ready, by name: the first job would otherwise pay them
     # (the gate's scipy.signal took seconds on a loaded machine), counted against its hang deadline.
     preload: tuple[str, ...] = ()
+    # Store each new network's input range with the model (models/input_bounds.py): the flight holds it there.
+    input_bounds: bool = False
 
 
 @dataclass(frozen=True)
@@ -274,6 +277,11 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
         training=result.training_info(dataset),
         extra={"version": request.version, "round": request.round, "base_version": w.version},
     )
+    if settings.input_bounds and len(dataset.train):
+        z = np.concatenate((dataset.train.x0[:, 3:6], dataset.train.u), axis=1)
+        held = queue_bounds(None if base is None else base.extra, 0 if base is None else len(base.networks),
+                            data_bounds(z), len(model.networks))
+        model = replace(model, extra={**model.extra, BOUNDS_KEY: held})
     train_t1 = float(dataset.train.t0[-1] + dataset.train.dt[-1]) if len(dataset.train) else w.t1
     return TrainOutcome(
         round=request.round,

@@ -283,6 +283,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command": FAST,
         "test_a_vertical_delay_of_its_own_takes_the_vertical_reference_from_there": FAST,
     },
+    "test_input_bounds.py": FAST,
     "test_layer_held_floor.py": FAST,
     "test_learner_with_layer.py": FLIES,
     "test_link_driver.py": FAST,

@@ -62,13 +62,14 @@ def trainer_settings(cfg: Config) -> TrainerSettings:
     there the loop's deadlines are real and a round may wait. In lockstep the loop itself waits for the
     trainer whenever its result is due, so a lowered trainer would only make the flight slower.
     """
-    o = cfg.online
-    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, weight_decay=o.weight_decay,
-                                   method=o.method)
+    o, layer = cfg.online, beside_layer(cfg)
+    training = dataclasses.replace(cfg.training, epochs=o.epochs, lr=o.lr, method=o.method,
+                                   weight_decay=o.layer_weight_decay if layer else o.weight_decay,
+                                   velocity_filter_hz=o.layer_filter_hz if layer else cfg.training.velocity_filter_hz)
     nice = o.trainer_nice if wall_clock(cfg) else 0
     # The trainer also judges the candidates (flight/learning/install.py): the gate's imports before take-off.
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject, nice,
-                           preload=("cfknode.flight.learning.install",))
+                           preload=("cfknode.flight.learning.install",), input_bounds=layer and o.layer_input_bounds)
 
 
 def wall_clock(cfg: Config) -> bool:
@@ -80,21 +81,21 @@ def learner_settings(
     cfg: Config, lockstep: bool, ground_z: float | None = None, speed: float | None = None
 ) -> LearnerSettings:
     """``speed``: the gate's envelope speed (m/s); None takes it from the data."""
-    o = cfg.online
+    o, layer = cfg.online, beside_layer(cfg)
     return LearnerSettings(
         t_col=o.t_col,
         period=1.0 / cfg.controller.rate_hz,
         lockstep=lockstep,
         paper_lockstep=o.paper_lockstep,
         gate=o.gate,
-        gate_min_pairs=o.gate_min_pairs,
-        replay_windows=o.replay_windows,
+        gate_min_pairs=o.gate_layer_min_pairs if layer else o.gate_min_pairs,
+        replay_windows=o.layer_replay_windows if layer else o.replay_windows,
         start_time=o.start_time,
         rollback_ticks=o.rollback_ticks,
         rollback_fallbacks=o.rollback_fallbacks,
         max_restarts=o.max_restarts,
         limits=gate_limits(cfg, speed),
-        filter_hz=cfg.training.velocity_filter_hz,
+        filter_hz=o.layer_filter_hz if layer else cfg.training.velocity_filter_hz,
         holdout_fraction=cfg.training.validation_fraction,
         queue_size=cfg.knode.queue_size,
         monitor=MonitorSettings(o.monitor_window_s, o.monitor_every_ticks, o.monitor_margin, o.monitor_floor)
@@ -102,7 +103,7 @@ def learner_settings(
         ground_z=ground_z,
         min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
-        held_limits=gate_limits(cfg, speed, layer_live=False) if beside_layer(cfg) else None,
+        held_limits=gate_limits(cfg, speed, layer_live=False) if layer else None,
     )
 
 

@@ -56,6 +56,15 @@ class OnlineConfig:
         doc="... and better by at least this acceleration over that rollout")
     gate_layer_min_score: float = setting(low=0, high=1, open_high=True,
         doc="... and remove more than this share of what the layer leaves on some axis (0: any)")
+    gate_layer_min_pairs: int = setting(low=2, high=100000,
+        doc="beside a fast layer: gate_min_pairs (1 s: a second of the fast force averages out)")
+    layer_replay_windows: int = setting(low=0, high=40,
+        doc="beside a fast layer: replay_windows (4 s of flight a round: a fit to one window fits the fast force)")
+    layer_weight_decay: float = setting(low=0, high=100, doc="beside a fast layer: weight_decay")
+    layer_filter_hz: float = setting(unit="Hz", low=0.5, high=100,
+        doc="beside a fast layer: the velocity low-pass of training and gate (training.velocity_filter_hz otherwise)")
+    layer_input_bounds: bool = setting(
+        doc="beside a fast layer: each network is held to the range of its training data (models/input_bounds.py)")
     trainer_timeout: float = setting(unit="s", low=0, high=600, open_low=True,
         doc="wall s without a result: the trainer is killed and restarted")
     trainer_start_timeout: float = setting(unit="s", low=1, high=3600,
