@@ -88,6 +88,7 @@ class Flight:
         self.r = TRUE_R.copy()  # the plant's residual (a test may change the world mid-flight)
         self.state = "TRACK"  # the supervisor's state the ticks report
         self.layer: Any = None  # the fast layer's estimate the ticks carry (None: no layer)
+        self.drag = np.zeros(3)  # per axis, a residual slope in v (1/s) on top of ``r``
 
     def run(self, seconds: float, source: str = "mpc") -> None:
         for _ in range(int(round(seconds / PERIOD))):
@@ -96,7 +97,7 @@ class Flight:
             est = Est(np.array([0.0, 0.0, 1.0 if self.k else 0.0]), self.v.copy())
             self.learner.on_tick(Tick(t, est, u, source, self.slot.version, supervisor_state=self.state,
                                       layer=self.layer(t) if callable(self.layer) else self.layer))
-            self.v = self.v + PERIOD * (u + self.r)
+            self.v = self.v + PERIOD * (u + self.r + self.drag * self.v)
             self.k += 1
 
 
@@ -273,3 +274,25 @@ def test_collection_starts_at_start_time() -> None:
     assert learner.recorder.windows == 0 and not trainer.requests
     flight.run(0.2)
     assert learner.windows[0][1] == pytest.approx(1.0)
+
+
+def test_beside_the_layer_an_accepted_model_flies_only_on_the_axes_it_earned() -> None:
+    from test_gate_transfer import LAYER_HZ
+    from test_online_gate import linear_residual_model
+
+    from cfknode.models.residual_check import SCORE_KEY, flown_axes
+
+    # Drag in x is there; the candidate has it, and a slope in u_z that is not (it makes z worse).
+    candidate = linear_residual_model(np.diag([-3.0, 0.0, 0.0]), np.diag([0.0, 0.0, 0.5]))
+    flight, learner, trainer, log, slot = make(lambda req: outcome_with(candidate, req))
+    flight.drag = np.array([-3.0, 0.0, 0.0])
+    lenient = replace(learner.s.limits, constant_free=True, steps=5, layer_hz=LAYER_HZ)
+    learner.s = replace(learner.s, limits=lenient)
+    learner._rules = replace(learner._rules, limits=lenient)
+    flight.run(0.8)
+    assert slot.version == 1
+    swap = log.topic("/model")[-1]
+    assert swap["event"] == "swap" and swap["score"][0] > 0.0 > swap["score"][2]
+    assert np.allclose(slot.model.beyond_layer, swap["score"])  # what the fast layer's loop reads
+    assert flown_axes(slot.model.beyond_layer, 0.002) == (True, False, False)
+    assert learner.recent_models[-1][1].extra[SCORE_KEY] == swap["score"]

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from dataclasses import replace
 from typing import Any, Callable
 
 import numpy as np
@@ -48,6 +49,7 @@ from cfknode.flight.learning.latency import applied_latency
 from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
+from cfknode.models.residual_check import SCORE_KEY
 from cfknode.models.trainer_process import JobOutcome, TrainerReady, TrainOutcome, TrainRequest, Window
 
 
@@ -349,6 +351,9 @@ class OnlineLearner(LearnerReports, TrainerJudging):
             return
         candidate, candidate_file = g.candidate, out.model
         assert candidate_file is not None and candidate is not None
+        if verdict.score:  # beside the layer it flies only on the axes it earned, as a stored score does offline
+            candidate.beyond_layer = np.asarray(verdict.score, dtype=np.float64)
+            candidate_file = replace(candidate_file, extra={**candidate_file.extra, SCORE_KEY: list(verdict.score)})
         queue = (self._flying.queue + (out.version,))[-self.s.queue_size :]
         previous = self._flying
         record = self.slot.swap(candidate, out.version, t)
