@@ -314,6 +314,22 @@ def test_gate_rejects_implausible_dynamics_anywhere_in_the_envelope() -> None:
     assert not verdict.accepted and "exceeds knode.max_residual" in verdict.reason
 
 
+def test_beside_the_layer_a_horizontal_effectiveness_far_from_one_is_refused_and_a_thrust_slope_is_not() -> None:
+    import dataclasses
+
+    t, x, u = flown_data(np.zeros(3))
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    beside = dataclasses.replace(limits(max_residual=1e3), horizontal_gain=(0.8, 1.25))
+    # The attitude loop's lag behind a ramp, fitted as a static gain: the MPC would command 3x the tilt.
+    for gain_u, ok in ((np.diag([-0.64, 0.0, 0.0]), False), (np.diag([-0.1, -0.1, 0.0]), True),
+                       (np.diag([0.0, 0.0, -0.5]), True)):  # a thrust slope is the layer's thrust scale's
+        mf = linear_residual_model(np.zeros((3, 3)), gain_u)
+        verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, beside)
+        assert ("horizontal control effectiveness" in verdict.reason) == (not ok), (gain_u, verdict.reason)
+        without = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
+        assert "horizontal" not in without.reason  # without a layer the broad bound alone
+
+
 def test_gate_without_held_out_data_rejects() -> None:
     t, x, u = flown_data(np.zeros(3))
     empty = gate_pairs(t[:1], x[:1], u[:1], filter_hz=8.0)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import dataclasses
+import math
 import warnings
 from typing import Any, Iterator
 
@@ -127,7 +128,8 @@ def gate_limits(cfg: Config, speed: float | None = None, layer_live: bool = True
                       min_improvement=o.gate_layer_margin if layer else 0.0,
                       steps=o.gate_layer_steps if layer else 1,
                       min_gain=o.gate_layer_min_gain if layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
-                      layer_hz=_layer_hz(cfg) if layer else None, min_score=o.gate_layer_min_score if layer else 0.0)
+                      layer_hz=_layer_hz(cfg) if layer else None, min_score=o.gate_layer_min_score if layer else 0.0,
+                      horizontal_gain=o.gate_layer_horizontal_gain if beside_layer(cfg) else (0.0, math.inf))
 
 
 def _layer_hz(cfg: Config) -> tuple[tuple[float, float], tuple[float, float]]:

@@ -191,6 +191,10 @@ class GateLimits:
     layer_hz: tuple[tuple[float, float], tuple[float, float]] | None = None
     # ... and remove more than this share of it on that axis (0: any positive share).
     min_score: float = 0.0
+    # Beside the fast layer (its thrust scale carries the mass, and Mellinger tilts the thrust where the MPC asks):
+    # the eigenvalues of sym(I + dr/du) over the horizontal commands. A model fitted while the attitude loop lagged
+    # a ramp's commands learned 0.36 there, and the MPC then commanded 3x the tilt (a 10 cm error over the floor).
+    horizontal_gain: tuple[float, float] = (0.0, math.inf)
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -324,6 +328,7 @@ def gate_steps(
     sel = np.concatenate((np.arange(0, k, 8), k + np.arange(envelope_x.shape[0])))
     xs, us = xs[sel], us[sel]
     g_lo, g_hi, vgain, cross = math.inf, -math.inf, -math.inf, 0.0
+    h_lo, h_hi = math.inf, -math.inf
     off = ~np.eye(3, dtype=bool)
     for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
         _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
@@ -332,6 +337,9 @@ def gate_steps(
         gain = np.linalg.eigvalsh(0.5 * (ju + ju.transpose(0, 2, 1)) + np.eye(3))
         jv = jx[:, :, 3:6]
         g_lo, g_hi = min(g_lo, float(gain.min())), max(g_hi, float(gain.max()))
+        jh = ju[:, 0:2, 0:2]
+        gain = np.linalg.eigvalsh(0.5 * (jh + jh.transpose(0, 2, 1)) + np.eye(2))
+        h_lo, h_hi = min(h_lo, float(gain.min())), max(h_hi, float(gain.max()))
         vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
         cross = max(cross, float(np.abs(ju[:, off]).max()))
         yield
@@ -352,6 +360,9 @@ def gate_steps(
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
+    if h_lo < limits.horizontal_gain[0] or h_hi > limits.horizontal_gain[1]:
+        return verdict(f"horizontal control effectiveness {h_lo:.2f}..{h_hi:.2f} outside "
+                       f"{limits.horizontal_gain[0]:g}..{limits.horizontal_gain[1]:g} beside the fast layer")
     if vgain > limits.max_velocity_gain:
         return verdict(f"velocity feedback {vgain:.2f} 1/s above {limits.max_velocity_gain:g} (phantom instability)")
     if cross > limits.max_cross_gain:
