@@ -514,6 +514,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_trainer_killed.py": BOTH,
     "test_trajectory.py": FAST,
     "test_tx_cadence.py": FAST,
+    "test_vertical_learning.py": {
+        "*": BOTH,
+        "test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer": FAST,
+    },
 }
 
 # Files that share something outside their process run on one pytest-xdist worker, one at a time.

@@ -59,9 +59,9 @@ class OnlineConfig:
     gate_layer_horizontal_gain: tuple[float, float] = setting(low=0, high=100, open_low=True,
         doc="beside a fast layer: eigenvalues of sym(I + dr/du) over the horizontal commands (the layer has the mass)")
     gate_layer_min_pairs: int = setting(low=2, high=100000,
-        doc="beside a fast layer: gate_min_pairs (1 s: a second of the fast force averages out)")
+        doc="beside a fast layer: gate_min_pairs")
     layer_replay_windows: int = setting(low=0, high=40,
-        doc="beside a fast layer: replay_windows (4 s of flight a round: a fit to one window fits the fast force)")
+        doc="beside a fast layer: replay_windows")
     layer_weight_decay: float = setting(low=0, high=100, doc="beside a fast layer: weight_decay")
     layer_filter_hz: float = setting(unit="Hz", low=0.5, high=100,
         doc="beside a fast layer: the velocity low-pass of training and gate (training.velocity_filter_hz otherwise)")

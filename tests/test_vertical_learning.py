@@ -1,0 +1,43 @@
+"""Where physics lets a model win in the air: an up-and-down oscillation at 0.94 m/s of climb, where the thrust
+lost with climb rate turns faster than the fast layer's filters. With the learning profile for state-dependent
+aerodynamics (examples/learning-beside-the-layer.yaml) the model learned in flight beside the layer takes a
+quarter of the layer's error away at least; seed 0, 6 s of the bench's own cell."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cfknode.app.bench.learning import Job, run_job
+from cfknode.app.bench.learning_cells import CELLS
+from cfknode.app.config import load_config
+
+CELL = next(c for c in CELLS if c.name == "vertical A=0.3 f=0.5")
+PROFILE = Path(__file__).resolve().parents[1] / "examples" / "learning-beside-the-layer.yaml"
+
+
+def profile_overrides() -> tuple[tuple[str, object], ...]:
+    """The example file as --set overrides (one section, ``online``)."""
+    raw = yaml.safe_load(PROFILE.read_text())
+    return tuple((f"{section}.{key}", value) for section, keys in raw.items() for key, value in keys.items())
+
+
+def test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer() -> None:
+    cfg, default = load_config(str(PROFILE)), load_config()
+    assert cfg.online.layer_replay_windows == 7 and cfg.online.layer_input_bounds
+    assert cfg.online.gate_layer_horizontal_gain == (0.8, 1.25)
+    assert cfg.controller == default.controller and cfg.training == default.training  # nothing else moves
+    assert {k.split(".")[0] for k, _ in profile_overrides()} == {"online"}
+
+
+@pytest.mark.xdist_group("vertical_learning")
+def test_with_the_profile_online_learning_beside_the_layer_learns_the_climb_rate_term(tmp_path):
+    layer = run_job(Job(CELL, "layer", 0, str(tmp_path), 6.0))
+    online = run_job(Job(CELL, "online+layer", 0, str(tmp_path), 6.0, profile_overrides()))
+    for run in (layer, online):
+        assert run.outcome.startswith("flight complete") and not run.fell and not run.tripped, run.outcome
+    assert online.models_accepted >= 1
+    assert online.mse_z < 0.6 * layer.mse_z, (online.mse_z, layer.mse_z)  # the vertical is where it learns
+    assert online.mse < 0.75 * layer.mse, (online.mse, layer.mse)  # 25 % lower at least
