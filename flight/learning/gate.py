@@ -298,6 +298,28 @@ def run_gate(
             return done.value
 
 
+def _jacobian_extremes(candidate: Any, xs: np.ndarray, us: np.ndarray
+                       ) -> Generator[None, None, tuple[float, float, float, float, float, float] | None]:
+    """Over the points, one slice per ``JACOBIAN_CHUNK``: the extreme eigenvalues of sym(I + dr/du) and of its
+    horizontal block, the largest of sym(dr/dv), and the largest |dr_i/du_j|, i != j. None: a non-finite one."""
+    g_lo, g_hi, h_lo, h_hi, vgain, cross = math.inf, -math.inf, math.inf, -math.inf, -math.inf, 0.0
+    off = ~np.eye(3, dtype=bool)
+    for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
+        _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
+        if not (math.isfinite(float(jx.sum())) and math.isfinite(float(ju.sum()))):
+            return None
+        gain = np.linalg.eigvalsh(0.5 * (ju + ju.transpose(0, 2, 1)) + np.eye(3))
+        g_lo, g_hi = min(g_lo, float(gain.min())), max(g_hi, float(gain.max()))
+        jh = ju[:, 0:2, 0:2]
+        gain = np.linalg.eigvalsh(0.5 * (jh + jh.transpose(0, 2, 1)) + np.eye(2))
+        h_lo, h_hi = min(h_lo, float(gain.min())), max(h_hi, float(gain.max()))
+        jv = jx[:, :, 3:6]
+        vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
+        cross = max(cross, float(np.abs(ju[:, off]).max()))
+        yield
+    return g_lo, g_hi, h_lo, h_hi, vgain, cross
+
+
 def gate_steps(
     candidate_file: ModelFile,
     candidate: ResidualQueue,
@@ -326,23 +348,10 @@ def gate_steps(
     # longer on the busy cores than the same work in small products.
     k = recent_x.shape[0]
     sel = np.concatenate((np.arange(0, k, 8), k + np.arange(envelope_x.shape[0])))
-    xs, us = xs[sel], us[sel]
-    g_lo, g_hi, vgain, cross = math.inf, -math.inf, -math.inf, 0.0
-    h_lo, h_hi = math.inf, -math.inf
-    off = ~np.eye(3, dtype=bool)
-    for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
-        _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
-        if not (math.isfinite(float(jx.sum())) and math.isfinite(float(ju.sum()))):
-            return GateVerdict(False, "non-finite Jacobian", nan, nan, nan, peak, n)
-        gain = np.linalg.eigvalsh(0.5 * (ju + ju.transpose(0, 2, 1)) + np.eye(3))
-        jv = jx[:, :, 3:6]
-        g_lo, g_hi = min(g_lo, float(gain.min())), max(g_hi, float(gain.max()))
-        jh = ju[:, 0:2, 0:2]
-        gain = np.linalg.eigvalsh(0.5 * (jh + jh.transpose(0, 2, 1)) + np.eye(2))
-        h_lo, h_hi = min(h_lo, float(gain.min())), max(h_hi, float(gain.max()))
-        vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
-        cross = max(cross, float(np.abs(ju[:, off]).max()))
-        yield
+    extremes = yield from _jacobian_extremes(candidate, xs[sel], us[sel])
+    if extremes is None:
+        return GateVerdict(False, "non-finite Jacobian", nan, nan, nan, peak, n)
+    g_lo, g_hi, h_lo, h_hi, vgain, cross = extremes
     cf, k = limits.constant_free, limits.steps
     e_cand = rollout_rmse(candidate, fresh, k, cf)
     yield
