@@ -23,6 +23,7 @@ The previous handlers are restored on exit. Outside the main thread nothing is i
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from types import FrameType, TracebackType
 from typing import Any, Protocol
@@ -58,6 +59,7 @@ class ProcessSignals:
         self._routed = 0
         self._unwound: list[str] = []  # raised as StopSignal before there was a target
         self.received: list[str] = []  # every stop signal this context handled, by name
+        self._unraisable: Any = None  # the hook to restore (``_quiet_swallowed``)
 
     def route(self, target: Interruptible) -> None:
         """From now on stop signals go to ``target`` (a ``Supervisor``); one raised before that
@@ -74,12 +76,22 @@ class ProcessSignals:
         for sig in self._signals:
             self._previous[sig] = signal.getsignal(sig)
             signal.signal(sig, self._handle)
+        self._unraisable, sys.unraisablehook = sys.unraisablehook, self._quiet_swallowed
         return self
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         self._previous.clear()
+        if self._unraisable is not None:
+            sys.unraisablehook, self._unraisable = self._unraisable, None
+
+    def _quiet_swallowed(self, unraisable: Any) -> None:
+        """A StopSignal raised where Python cannot propagate it (a weakref callback inside an import, say) is
+        swallowed there, printing a traceback; ``route`` hands it to the supervisor, so only others are printed."""
+        if isinstance(unraisable.exc_value, StopSignal):
+            return
+        (self._unraisable or sys.__unraisablehook__)(unraisable)
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         # A Python-level handler: it runs on the main thread between bytecodes, so it only

@@ -434,6 +434,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": FLIES,
         "test_a_second_sigterm_stops_the_motors": BOTH,
         "test_a_stop_signal_in_flight_lands_and_hands_back": BOTH,
+        "test_a_stop_signal_swallowed_where_python_cannot_raise_is_not_printed_and_still_reaches_the_supervisor": FAST,
         "test_process_signals_route_then_restore": FAST,
         "test_sigterm_before_take_off_unwinds_like_ctrl_c": SPAWNS,
     },

@@ -95,6 +95,36 @@ class Target:
         self.got.append(signal_name)
 
 
+def test_a_stop_signal_swallowed_where_python_cannot_raise_is_not_printed_and_still_reaches_the_supervisor():
+    import weakref
+
+    seen = []
+    before = sys.unraisablehook
+    sys.unraisablehook = seen.append  # stands for Python's printing hook
+    try:
+        target = Target()
+        with ProcessSignals() as signals:
+
+            class Owner:
+                pass
+
+            owner = Owner()
+
+            def lock_callback(_ref: object) -> None:  # as an import lock's weakref callback, where the signal landed
+                signals._handle(signal.SIGTERM, None)
+
+            ref = weakref.ref(owner, lock_callback)
+            del owner  # the callback raises StopSignal: Python can only swallow it
+            assert ref() is None and seen == []  # not printed as a traceback
+            ref2 = weakref.ref(Owner(), lambda _r: 1 / 0)  # anything else is still reported
+            assert ref2() is None and len(seen) == 1 and seen[0].exc_type is ZeroDivisionError
+            signals.route(target)
+        assert target.got == ["SIGTERM"]  # the swallowed stop: take-off refused
+        assert sys.unraisablehook == seen.append  # restored
+    finally:
+        sys.unraisablehook = before
+
+
 def test_process_signals_route_then_restore():
     mine = signal.getsignal(signal.SIGTERM)
     # Not always Python's default: a shell starting the run in the background ignores SIGINT.
