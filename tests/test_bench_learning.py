@@ -177,3 +177,28 @@ def test_a_flight_that_could_not_fly_is_a_row_not_the_end_of_the_bench():
 def test_every_cell_can_be_named_on_the_command_line():
     assert all("," not in c.name for c in CELLS)  # --cells splits on commas
     assert [c.name for c in select_cells(_args(cells=",".join(c.name for c in CELLS)))] == [c.name for c in CELLS]
+
+
+def test_a_config_file_becomes_every_flight_s_overrides_before_the_command_line_s(tmp_path):
+    from pathlib import Path
+
+    from cfknode.app.bench.learning import _command, _file_overrides
+    from cfknode.app.config import ConfigError
+
+    profile = Path(__file__).resolve().parents[1] / "examples" / "learning-beside-the-layer.yaml"
+    extra = dict(_file_overrides(str(profile)))
+    assert extra["online.layer_replay_windows"] == 7 and extra["online.gate_layer_horizontal_gain"] == [0.8, 1.25]
+    job = Job(BY_NAME["vertical A=0.3 f=0.5"], "online+layer", 0, str(tmp_path), 2.0, tuple(extra.items()))
+    cfg = load_config(overrides=flight_overrides(job))
+    assert cfg.online.layer_input_bounds and cfg.online.layer_filter_hz == 2.0
+    args = argparse.Namespace(quick=True, seeds=1, groups="", cells="", duration=0.0, fixed_latency=0.1,
+                              config=str(profile), set=["online.layer_weight_decay=0.1"])
+    executor = argparse.Namespace(command_flags=lambda: "--jobs 1")
+    cmd = _command(args, executor)
+    assert cmd.index("--config") < cmd.index("--set")  # the table's command reproduces the run
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("online:\n  layer_replay_windows: many\n")
+    with pytest.raises(ConfigError) as err:
+        _file_overrides(str(bad))
+    assert "\n" not in str(err.value)
+    assert _file_overrides("") == ()

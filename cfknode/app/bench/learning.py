@@ -228,6 +228,9 @@ def add_learning_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--groups", default="", help=f"comma-separated subset of {', '.join(GROUPS)} (default: all)")
     p.add_argument("--cells", default="", help="comma-separated cell names (default: every cell of the groups)")
     p.add_argument("--duration", type=float, default=0.0, help="s of pattern, overriding the cells' (0: theirs)")
+    p.add_argument("--config", default="", metavar="FILE",
+                   help="a YAML file overriding the defaults on every flight (e.g. "
+                        "examples/learning-beside-the-layer.yaml); --set comes after it")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override on every flight (e.g. a layer to bench), repeatable")
     p.add_argument("--fixed-latency", type=float, default=DEFAULT_FIXED_LATENCY_S, metavar="S",
@@ -277,6 +280,25 @@ def _parse_sets(items: list[str]) -> tuple[tuple[str, Any], ...]:
     return tuple(out)
 
 
+def _file_overrides(path: str) -> tuple[tuple[str, Any], ...]:
+    """A config file's keys as dotted overrides (checked whole first: a bad file is a one-line error)."""
+    if not path:
+        return ()
+    import yaml
+
+    from cfknode.app.config import load_config
+
+    load_config(path)
+
+    def flat(prefix: str, value: Any) -> list[tuple[str, Any]]:
+        if isinstance(value, dict):
+            return [kv for k, v in value.items() for kv in flat(f"{prefix}{k}.", v)]
+        return [(prefix[:-1], value)]
+
+    with open(path, encoding="utf-8") as f:
+        return tuple(flat("", yaml.safe_load(f) or {}))
+
+
 def run_learning(args: argparse.Namespace, version: str) -> int:
     from rich.console import Console
 
@@ -290,7 +312,7 @@ def run_learning(args: argparse.Namespace, version: str) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is not a directory")
-    extra = _parse_sets(args.set)
+    extra = _file_overrides(args.config) + _parse_sets(args.set)
     base = load_config(overrides=dict(extra))
     cells, refused = [], []
     for cell in select_cells(args):
@@ -354,6 +376,7 @@ def _command(args: argparse.Namespace, executor: Any) -> str:
         cmd += f" --duration {args.duration:g}"
     if args.fixed_latency != DEFAULT_FIXED_LATENCY_S:
         cmd += f" --fixed-latency {args.fixed_latency:g}"
+    cmd += f" --config {args.config}" if args.config else ""
     return cmd + "".join(f" --set {s}" for s in args.set)
 
 
