@@ -267,26 +267,17 @@ def cell_refusal(cell: LearnCell, extra: tuple[tuple[str, Any], ...] = ()) -> st
 
 
 def _parse_sets(items: list[str]) -> tuple[tuple[str, Any], ...]:
-    import yaml
+    """``--set KEY=VALUE`` flags, parsed as ``cfknode fly`` parses them."""
+    from cfknode.app.config import parse_override
 
-    from cfknode.app.errors import UsageError
-
-    out = []
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise UsageError(f"--set needs KEY=VALUE, got {item!r}")
-        out.append((key.strip(), yaml.safe_load(value)))
-    return tuple(out)
+    return tuple(parse_override(item) for item in items)
 
 
 def _file_overrides(path: str) -> tuple[tuple[str, Any], ...]:
     """A config file's keys as dotted overrides (checked whole first: a bad file is a one-line error)."""
     if not path:
         return ()
-    import yaml
-
-    from cfknode.app.config import load_config
+    from cfknode.app.config import load_config, read_yaml_mapping
 
     load_config(path)
 
@@ -295,8 +286,7 @@ def _file_overrides(path: str) -> tuple[tuple[str, Any], ...]:
             return [kv for k, v in value.items() for kv in flat(f"{prefix}{k}.", v)]
         return [(prefix[:-1], value)]
 
-    with open(path, encoding="utf-8") as f:
-        return tuple(flat("", yaml.safe_load(f) or {}))
+    return tuple(flat("", read_yaml_mapping(Path(path))))
 
 
 def run_learning(args: argparse.Namespace, version: str) -> int:
