@@ -39,11 +39,10 @@ def queue_bounds(base_extra: Mapping[str, Any] | None, base_networks: int, new: 
                  networks: int) -> list[list[list[float]] | None]:
     """The bounds of a queue of ``networks`` networks: the base queue's (null where it stored none) and the new
     network's, newest last, the oldest dropped as the queue drops them."""
-    old = stored_bounds(base_extra, base_networks)
-    listed: list[list[list[float]] | None] = (
-        [None] * base_networks if old is None
-        else [None if not np.all(np.isfinite(b)) else [list(map(float, b[0])), list(map(float, b[1]))] for b in old])
-    return (listed + [[new[0], new[1]]])[-networks:]
+    old = base_extra.get(BOUNDS_KEY) if isinstance(base_extra, Mapping) else None
+    if old is None or bounds_problem(old, base_networks) is not None:
+        old = [None] * base_networks
+    return [*old, [new[0], new[1]]][-networks:]
 
 
 def bounds_problem(value: object, networks: int) -> str | None:
