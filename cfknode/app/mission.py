@@ -110,8 +110,8 @@ def model_not_flown(cfg: Config, score: Any) -> str | None:
 
     ctrl = cfg.controller
     min_score = ctrl.adaptation_settings.model_min_score
-    if ctrl.adaptation == "none" or not ctrl.adaptation_settings.model_coefficients \
-            or any(flown_axes(score, min_score) or (True,)):
+    axes = flown_axes(score, min_score)  # None: no score stored
+    if ctrl.adaptation == "none" or not ctrl.adaptation_settings.model_coefficients or axes is None or any(axes):
         return None
     scores = ", ".join(f"{v:+.2%}" for v in score.tolist())
     return (f"model not flown: {ctrl.model} adds nothing beside the fast layer on any axis (its held-out score "
