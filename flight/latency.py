@@ -135,9 +135,8 @@ class CommandDelayPredictor:
             self._learn(t, np.asarray(est.v, float), times, accs)
         p = np.array(est.p, dtype=float)
         v = np.array(est.v, dtype=float)
-        for d, axes in self._groups():
-            if self.lag > 0.0 and d < 0.0:  # the lagged axes, over the horizontal delay
-                d = self.delay
+        for d, axes, lagged in self._groups():
+            if lagged:
                 dv, dp = lag_increments(self._flown, self._sent[-1][1], self.lag, d)
             else:
                 dv, dp = held_increments(times, accs, t - d, t)
@@ -146,11 +145,12 @@ class CommandDelayPredictor:
             v[axes] += dv[axes] + d * extra
         return dataclasses.replace(est, t=t + self.delay, p=p, v=v)
 
-    def _groups(self) -> list[tuple[float, np.ndarray]]:
-        """Axes sharing a model, as (delay, index array); delay -1 marks x and y through the lag."""
+    def _groups(self) -> list[tuple[float, np.ndarray, bool]]:
+        """Axes sharing a model, as (delay, index array, flown through the lag): with a lag, x and y over the
+        horizontal delay through it, z over its own delay."""
         if self.lag > 0.0:
-            return [(-1.0, np.array([0, 1])), (self.delay_z, np.array([2]))]
-        return _groups(self._delays())
+            return [(self.delay, np.array([0, 1]), True), (self.delay_z, np.array([2]), False)]
+        return [(d, axes, False) for d, axes in _groups(self._delays())]
 
     def _learn(self, t: float, v: np.ndarray, times: np.ndarray, accs: np.ndarray) -> None:
         """Update the unexplained acceleration from the velocity change over the last delay (per axis)."""
@@ -164,8 +164,8 @@ class CommandDelayPredictor:
             return  # not a whole delay seen yet
         # Over [then_t, t] the vehicle flew the commands sent a delay before (per axis group).
         flown = np.zeros(3)
-        for d, axes in self._groups():
-            if d < 0.0:
+        for d, axes, lagged in self._groups():
+            if lagged:
                 flown[axes] = (self._flown_sum - then_sum)[axes]
             else:
                 flown[axes] = held_increments(times, accs, then_t - d, t - d)[0][axes]
