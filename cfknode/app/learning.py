@@ -121,15 +121,15 @@ def gate_limits(cfg: Config, speed: float | None = None, layer_live: bool = True
 
     bounds = acceleration_bounds(cfg.controller, cfg.vehicle)
     x, u = operating_envelope(1.0 if speed is None else speed, bounds.lower, bounds.upper)
-    o = cfg.online
-    layer = beside_layer(cfg) and layer_live
+    o, beside = cfg.online, beside_layer(cfg)
+    layer = beside and layer_live
     return GateLimits(cfg.knode.max_residual, o.gate_control_gain, o.gate_max_velocity_gain, x, u, o.gate_max_cross_gain,
                       envelope_from_data=speed is None, constant_free=layer,
                       min_improvement=o.gate_layer_margin if layer else 0.0,
                       steps=o.gate_layer_steps if layer else 1,
                       min_gain=o.gate_layer_min_gain if layer else 0.0, max_tilt_climb=o.gate_max_tilt_climb,
                       layer_hz=_layer_hz(cfg) if layer else None, min_score=o.gate_layer_min_score if layer else 0.0,
-                      horizontal_gain=o.gate_layer_horizontal_gain if beside_layer(cfg) else (0.0, math.inf))
+                      horizontal_gain=o.gate_layer_horizontal_gain if beside else (0.0, math.inf))
 
 
 def _layer_hz(cfg: Config) -> tuple[tuple[float, float], tuple[float, float]]:
