@@ -14,11 +14,12 @@ queue. Plain numbers only: no pickled objects.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from cfknode.models.residual_check import finite_numbers
 
 BOUNDS_KEY = "input_bounds"
 WIDEN = 0.25  # of the data's own range, on each side
@@ -54,7 +55,7 @@ def bounds_problem(value: object, networks: int) -> str | None:
     for entry in value:
         if entry is None:
             continue
-        if not (isinstance(entry, list) and len(entry) == 2 and all(_numbers(side) for side in entry)
+        if not (isinstance(entry, list) and len(entry) == 2 and all(finite_numbers(side) for side in entry)
                 and len(entry[0]) == len(entry[1]) and all(a <= b for a, b in zip(*entry))):
             return f"metadata 'extra.{BOUNDS_KEY}': each entry must be null or [low, high], finite, low <= high"
     return None
@@ -74,11 +75,6 @@ def stored_bounds(extra: object, networks: int) -> np.ndarray | None:
         if entry is not None and len(entry[0]) == width:
             out[j] = np.asarray(entry, dtype=np.float64)
     return out
-
-
-def _numbers(side: object) -> bool:
-    return isinstance(side, list) and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in side)
 
 
 __all__ = ["BOUNDS_KEY", "bounds_problem", "data_bounds", "queue_bounds", "stored_bounds"]

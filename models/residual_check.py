@@ -157,10 +157,15 @@ def score_problem(value: object) -> str | None:
     """Why a stored score is unusable (None when it is absent or three finite numbers)."""
     if value is None:
         return None
-    if not isinstance(value, list) or len(value) != 3 or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value):
+    if not (finite_numbers(value) and len(value) == 3):
         return f"metadata 'extra.{SCORE_KEY}' must be a list of 3 finite numbers"
     return None
+
+
+def finite_numbers(value: object) -> bool:
+    """Whether a metadata value is a list of finite plain numbers (JSON numbers, not booleans)."""
+    return isinstance(value, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
 
 
 def stored_score(extra: object) -> np.ndarray | None:
