@@ -282,17 +282,21 @@ def test_beside_the_layer_an_accepted_model_flies_only_on_the_axes_it_earned() -
 
     from cfknode.models.residual_check import SCORE_KEY, flown_axes
 
-    # Drag in x is there; the candidate has it, and a slope in u_z that is not (it makes z worse).
-    candidate = linear_residual_model(np.diag([-3.0, 0.0, 0.0]), np.diag([0.0, 0.0, 0.5]))
+    # Drag in x and y is there; the candidate has x's, a sliver of y's (a score too small to fly), and a slope
+    # in u_z that is not there (it makes z worse).
+    candidate = linear_residual_model(np.diag([-3.0, -0.03, 0.0]), np.diag([0.0, 0.0, 0.5]))
     flight, learner, trainer, log, slot = make(lambda req: outcome_with(candidate, req))
-    flight.drag = np.array([-3.0, 0.0, 0.0])
-    lenient = replace(learner.s.limits, constant_free=True, steps=5, layer_hz=LAYER_HZ)
+    flight.drag = np.array([-3.0, -3.0, 0.0])
+    lenient = replace(learner.s.limits, constant_free=True, steps=5, layer_hz=LAYER_HZ, min_score=0.02)
     learner.s = replace(learner.s, limits=lenient)
     learner._rules = replace(learner._rules, limits=lenient)
     flight.run(0.8)
     assert slot.version == 1
     swap = log.topic("/model")[-1]
-    assert swap["event"] == "swap" and swap["score"][0] > 0.0 > swap["score"][2]
-    assert np.allclose(slot.model.beyond_layer, swap["score"])  # what the fast layer's loop reads
-    assert flown_axes(slot.model.beyond_layer, 0.002) == (True, False, False)
+    assert swap["event"] == "swap" and swap["score"][0] > 0.02 and swap["score"][2] < 0.0
+    # What the fast layer's loop reads: the score, 0 on the axes at or below the gate's min_score.
+    score = np.array(swap["score"])
+    assert 0.002 < score[1] <= 0.02 and slot.model.beyond_layer[1] == 0.0  # y's sliver: no model flies there
+    assert np.allclose(slot.model.beyond_layer, np.where(score > 0.02, score, 0.0))
+    assert flown_axes(slot.model.beyond_layer, 0.0) == (True, False, False)
     assert learner.recent_models[-1][1].extra[SCORE_KEY] == swap["score"]

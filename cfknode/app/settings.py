@@ -55,7 +55,8 @@ class OnlineConfig:
     gate_layer_min_gain: float = setting(unit="m/s^2", low=0, high=10,
         doc="... and better by at least this acceleration over that rollout")
     gate_layer_min_score: float = setting(low=0, high=1, open_high=True,
-        doc="... and remove more than this share of what the layer leaves on some axis (0: any)")
+        doc="... and remove more than this share of what the layer leaves on some axis (0: any); "
+            "it flies on those axes only")
     gate_layer_horizontal_gain: tuple[float, float] = setting(low=0, high=100, open_low=True,
         doc="beside a fast layer: eigenvalues of sym(I + dr/du) over the horizontal commands (the layer has the mass)")
     gate_layer_min_pairs: int = setting(low=2, high=100000,

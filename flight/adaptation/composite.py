@@ -8,10 +8,16 @@ where r is the learned model's residual, m its slow mean over the ticks just flo
 a the coefficients adapted here, and d the layer's constant (its observer's offset; vertically the thrust
 scale). Who owns what:
 - the constant: the layer. Horizontally the model's mean stays in the prediction (k = 1) beside the layer's
-  offset. Vertically it is handed to the layer's observer (k = 0), which moves it into the thrust scale: the
-  Mellinger layer then carries the model's mass, and the MPC, whose input cost is on u - a_ref, no longer
-  needs a standing u to hover. Given to the MPC as a residual constant instead, that input cost left an
-  offline model 2.7 cm low at 1.3x mass while the layer, seeing nothing left to explain, acted on no axis.
+  offset: on a circle the mean turns with the vehicle, and handed to the layer (0.5 Hz) it is lost (a model
+  that explains the speed force flew 4-12x its own error so). Vertically it is handed to the layer's observer
+  (k = 0), which moves it into the thrust scale: the Mellinger layer then carries the model's mass, and the
+  MPC, whose input cost is on u - a_ref, no longer needs a standing u to hover. Given to the MPC as a residual
+  constant instead, that input cost left an offline model 2.7 cm low at 1.3x mass while the layer, seeing
+  nothing left to explain, acted on no axis.
+- k is the same in what the layer's observer is told the model predicts and in what the MPC flies, whether
+  or not the layer acts: a constant the MPC flies but the observer never saw is invisible to the layer's
+  engagement. Flown while the layer's vertical did not act, a take-off network's 0.02 m/s^2 of vertical mean
+  held a lab circle 6 mm low, 3.2x the layer's MSE (ideal plant).
 - the thrust's effectiveness: the layer's thrust scale (a mass is one). The model's vertical feature is its
   residual without its slope in the vertical command u_z, and the MPC is not given that slope while the
   layer's vertical acts: a model trained beside the layer (its targets already shaped by the thrust scale)
@@ -105,10 +111,11 @@ class ModelCoefficients:
         self.reset()
 
     def reset(self) -> None:
-        """The model as it is: a = 1 (0 where it does not fly), no mean taken out (take-off, landing, a new
-        model)."""
+        """The model as it is: a = 1 (0 where it does not fly); its mean is taken on the first tick flown
+        (take-off, landing, a new model)."""
         self.a = self.flown.astype(float)
         self.mean = np.zeros(3)
+        self._mean_taken = False
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
         self._fits = [prior_fit(self._prior_info)] * 3
         self._started = False
@@ -121,10 +128,11 @@ class ModelCoefficients:
         self.reset()
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
+            self._mean_taken = True
 
-    def _keep(self, vertical_acts: bool = True) -> np.ndarray:
-        """k per axis: 1 horizontally, vertically 0 while the layer's vertical acts; 0 where the model does not fly."""
-        return np.where(self.flown, [1.0, 1.0, 0.0 if vertical_acts else 1.0], 0.0)
+    def _keep(self) -> np.ndarray:
+        """k per axis: 1 horizontally, 0 vertically; 0 where the model does not fly."""
+        return np.where(self.flown, [1.0, 1.0, 0.0], 0.0)
 
     def prediction(self, r: np.ndarray) -> np.ndarray:
         return composite_prediction(r, self.a, self.mean, self._keep())
@@ -136,13 +144,13 @@ class ModelCoefficients:
     def linearisation(self, model: ResidualLinearisation, offset: np.ndarray,
                       vertical_acts: bool, model_vertical: bool = False) -> ResidualLinearisation:
         """The MPC's residual over the horizon: a (r - m) + k m + offset, from the model's linearisation (value
-        and Jacobians scaled per row by a). k is 1 horizontally; vertically 0 while the layer's vertical acts
-        (its thrust scale carries the mean) and 1 while it does not (the model's mean flies as the model's).
+        and Jacobians scaled per row by a): what the layer's observer is told (``prediction``), plus its estimate
+        where it acts.
         ``model_vertical``: the layer measures nothing here (held near the floor, where the model may learn the
         ground effect), so the vertical is the model's alone, whole (a = 1, k = 1), without the layer's held
         offset, which was measured elsewhere and is part of what the model learned."""
         a = self.a
-        keep = self._keep(vertical_acts)
+        keep = self._keep()
         if model_vertical and self.flown[2]:
             a, keep, offset = a.copy(), keep.copy(), np.asarray(offset, dtype=float).copy()
             a[2] = keep[2] = 1.0
@@ -168,10 +176,12 @@ class ModelCoefficients:
         prediction's filtered value, which the observer must take into its estimate (so that model + layer
         predicts the same acceleration before and after the coefficients move)."""
         rs = r.tolist()
-        if not self._started:  # the first tick: the filtered feature starts where the feature is
-            self._phi_f = [rs[i] - float(self.mean[i]) for i in range(3)]
+        # The first tick: the mean starts where the model is (unless a swap took it), the filtered feature at 0.
+        k_mean = min(1.0, dt / self.s.mean_s) if self._mean_taken else 1.0
+        self._mean_taken = True
+        if not self._started:
+            self._phi_f = [rs[i] - (rs[i] if k_mean == 1.0 else float(self.mean[i])) for i in range(3)]
             self._started = True
-        k_mean = min(1.0, dt / self.s.mean_s)
         keep = math.exp(-dt / self.s.memory_s)
         a_old, m_old = self.a.tolist(), self.mean.tolist()
         a_new, m_new, shift = list(a_old), list(m_old), [0.0, 0.0, 0.0]

@@ -352,7 +352,9 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         candidate, candidate_file = g.candidate, out.model
         assert candidate_file is not None and candidate is not None
         if verdict.score:  # beside the layer it flies only on the axes it earned, as a stored score does offline
-            candidate.beyond_layer = np.asarray(verdict.score, dtype=np.float64)
+            # At or below the gate's min_score an axis earned nothing: on a second of fresh data that score is noise.
+            score = np.asarray(verdict.score, dtype=np.float64)
+            candidate.beyond_layer = np.where(score > self.s.limits.min_score, score, 0.0)
             candidate_file = replace(candidate_file, extra={**candidate_file.extra, SCORE_KEY: list(verdict.score)})
         queue = (self._flying.queue + (out.version,))[-self.s.queue_size :]
         previous = self._flying
