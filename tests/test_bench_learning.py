@@ -187,7 +187,7 @@ def test_a_config_file_becomes_every_flight_s_overrides_before_the_command_line_
 
     profile = Path(__file__).resolve().parents[1] / "examples" / "learning-beside-the-layer.yaml"
     extra = dict(_file_overrides(str(profile)))
-    assert extra["online.layer_replay_windows"] == 7 and extra["online.gate_layer_horizontal_gain"] == [0.8, 1.25]
+    assert extra["online.layer_replay_windows"] == 7 and extra["online.gate_layer_min_pairs"] == 400
     job = Job(BY_NAME["vertical A=0.3 f=0.5"], "online+layer", 0, str(tmp_path), 2.0, tuple(extra.items()))
     cfg = load_config(overrides=flight_overrides(job))
     assert cfg.online.layer_input_bounds and cfg.online.layer_filter_hz == 2.0

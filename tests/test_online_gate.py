@@ -328,6 +328,12 @@ def test_beside_the_layer_a_horizontal_effectiveness_far_from_one_is_refused_and
         assert ("horizontal control effectiveness" in verdict.reason) == (not ok), (gain_u, verdict.reason)
         without = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x, u, limits(max_residual=1e3))
         assert "horizontal" not in without.reason  # without a layer the broad bound alone
+    # The bound is the default beside a layer: a candidate at 0.75 there flew a 1 m/s loop 2x worse.
+    from cfknode.app.config import load_config
+    from cfknode.app.learning import gate_limits
+
+    assert gate_limits(load_config()).horizontal_gain == (0.8, 1.25)
+    assert gate_limits(load_config(overrides={"controller.adaptation": "none"})).horizontal_gain == (0.0, math.inf)
 
 
 def test_gate_without_held_out_data_rejects() -> None:

@@ -27,7 +27,7 @@ def profile_overrides() -> tuple[tuple[str, object], ...]:
 def test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer() -> None:
     cfg, default = load_config(str(PROFILE)), load_config()
     assert cfg.online.layer_replay_windows == 7 and cfg.online.layer_input_bounds
-    assert cfg.online.gate_layer_horizontal_gain == (0.8, 1.25)
+    assert cfg.online.gate_layer_min_pairs == 400 and cfg.online.layer_weight_decay == 0.01
     assert cfg.controller == default.controller and cfg.training == default.training  # nothing else moves
     assert {k.split(".")[0] for k, _ in profile_overrides()} == {"online"}
 
