@@ -176,11 +176,11 @@ class ModelCoefficients:
         prediction's filtered value, which the observer must take into its estimate (so that model + layer
         predicts the same acceleration before and after the coefficients move)."""
         rs = r.tolist()
-        # The first tick: the mean starts where the model is (unless a swap took it), the filtered feature at 0.
-        k_mean = min(1.0, dt / self.s.mean_s) if self._mean_taken else 1.0
+        first_mean = not self._mean_taken  # the mean starts where the model is, unless a swap took it
         self._mean_taken = True
-        if not self._started:
-            self._phi_f = [rs[i] - (rs[i] if k_mean == 1.0 else float(self.mean[i])) for i in range(3)]
+        k_mean = 1.0 if first_mean else min(1.0, dt / self.s.mean_s)
+        if not self._started:  # the first tick: the filtered feature starts where the feature is
+            self._phi_f = [0.0 if first_mean else rs[i] - float(self.mean[i]) for i in range(3)]
             self._started = True
         keep = math.exp(-dt / self.s.memory_s)
         a_old, m_old = self.a.tolist(), self.mean.tolist()

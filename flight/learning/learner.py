@@ -352,7 +352,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         candidate, candidate_file = g.candidate, out.model
         assert candidate_file is not None and candidate is not None
         if verdict.score:  # beside the layer it flies only on the axes it earned, as a stored score does offline
-            # At or below the gate's min_score an axis earned nothing: on a second of fresh data that score is noise.
+            # An axis at or below the gate's min_score (online.gate_layer_min_score) earned nothing there.
             score = np.asarray(verdict.score, dtype=np.float64)
             candidate.beyond_layer = np.where(score > self.s.limits.min_score, score, 0.0)
             candidate_file = replace(candidate_file, extra={**candidate_file.extra, SCORE_KEY: list(verdict.score)})
