@@ -114,6 +114,7 @@ class ModelCoefficients:
         """The model as it is: a = 1 (0 where it does not fly); its mean is taken on the first tick flown
         (take-off, landing, a new model)."""
         self.a = self.flown.astype(float)
+        self._k = np.where(self.flown, [1.0, 1.0, 0.0], 0.0)  # k per axis: 1 horizontally, 0 vertically and unflown
         self.mean = np.zeros(3)
         self._mean_taken = False
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
@@ -130,16 +131,12 @@ class ModelCoefficients:
             self.mean = np.mean(r_recent, axis=0)
             self._mean_taken = True
 
-    def _keep(self) -> np.ndarray:
-        """k per axis: 1 horizontally, 0 vertically; 0 where the model does not fly."""
-        return np.where(self.flown, [1.0, 1.0, 0.0], 0.0)
-
     def prediction(self, r: np.ndarray) -> np.ndarray:
-        return composite_prediction(r, self.a, self.mean, self._keep())
+        return composite_prediction(r, self.a, self.mean, self._k)
 
     def predictions(self, r: np.ndarray) -> np.ndarray:
         """``prediction`` for rows (n, 3)."""
-        return self.a * (r - self.mean) + self._keep() * self.mean
+        return self.a * (r - self.mean) + self._k * self.mean
 
     def linearisation(self, model: ResidualLinearisation, offset: np.ndarray,
                       vertical_acts: bool, model_vertical: bool = False) -> ResidualLinearisation:
@@ -149,8 +146,7 @@ class ModelCoefficients:
         ``model_vertical``: the layer measures nothing here (held near the floor, where the model may learn the
         ground effect), so the vertical is the model's alone, whole (a = 1, k = 1), without the layer's held
         offset, which was measured elsewhere and is part of what the model learned."""
-        a = self.a
-        keep = self._keep()
+        a, keep = self.a, self._k
         if model_vertical and self.flown[2]:
             a, keep, offset = a.copy(), keep.copy(), np.asarray(offset, dtype=float).copy()
             a[2] = keep[2] = 1.0
