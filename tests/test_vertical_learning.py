@@ -8,9 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import yaml
 
-from cfknode.app.bench.learning import Job, run_job
+from cfknode.app.bench.learning import Job, _file_overrides, run_job
 from cfknode.app.bench.learning_cells import CELLS
 from cfknode.app.config import load_config
 
@@ -19,9 +18,8 @@ PROFILE = Path(__file__).resolve().parents[1] / "examples" / "learning-beside-th
 
 
 def profile_overrides() -> tuple[tuple[str, object], ...]:
-    """The example file as --set overrides (one section, ``online``)."""
-    raw = yaml.safe_load(PROFILE.read_text())
-    return tuple((f"{section}.{key}", value) for section, keys in raw.items() for key, value in keys.items())
+    """The example file as --set overrides, as ``cfknode bench learning --config`` reads it."""
+    return _file_overrides(str(PROFILE))
 
 
 def test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer() -> None:
