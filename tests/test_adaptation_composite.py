@@ -64,6 +64,37 @@ def test_the_prediction_weights_the_variation_and_hands_the_vertical_mean_over()
     assert np.allclose(idle.c[0], coeffs.prediction(r))
 
 
+def test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb() -> None:
+    """On the take-off's climb a model's output is also the ground effect and the inflow: the mean taken there
+    (so that a model's mass reaches the thrust scale before the pattern) is taken again, at once, on the first
+    steady tick, where the model is; the prediction stays continuous through the observer (the shift), and the
+    filtered feature starts again with it. A swap's mean survives; a new take-off climbs again."""
+    settings = CoefficientSettings((0.0, 1.5), 4.0, 0.05, 4.0)
+    coeffs = ModelCoefficients(settings, RATE)
+    sigma, omega = np.zeros(3), np.full(3, 2.0 * math.pi)
+    climb = np.array([0.0, 0.0, 0.9])  # the ground effect's lift near the floor
+    coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=False)
+    assert np.allclose(coeffs.mean, climb)  # the first tick's, as before
+    for _ in range(200):
+        coeffs.tick(climb + [0.0, 0.0, -0.5], sigma, omega, 1.0 / RATE, learn=False, steady=False)
+    assert 0.7 < coeffs.mean[2] < 0.9  # slowly, on the climb
+    cruise = np.array([0.1, -0.05, -0.3])  # the model where it tracks
+    m_old = coeffs.mean.copy()
+    shift = coeffs.tick(cruise, sigma, omega, 1.0 / RATE, learn=False, steady=True)
+    assert np.allclose(coeffs.mean, cruise)  # taken at once: nothing of the climb left in it
+    assert shift[2] == pytest.approx(cruise[2] - m_old[2])  # handed to the observer's estimate
+    assert np.allclose(coeffs._phi_f, 0.0, atol=1e-9)  # the feature r - m is 0, and so is its filtered value
+    coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=True)
+    assert coeffs.mean[2] == pytest.approx(-0.3 + (0.9 + 0.3) / (4.0 * RATE))  # then slowly again
+    coeffs.restart(np.tile(cruise, (5, 1)))  # a swap: its mean is where the vehicle flew, and stays
+    coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=True)
+    assert coeffs.mean[2] == pytest.approx(-0.3 + (0.9 + 0.3) / (4.0 * RATE))
+    coeffs.reset()  # landed: the next take-off climbs again
+    coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=False)
+    coeffs.tick(cruise, sigma, omega, 1.0 / RATE, learn=False, steady=True)
+    assert np.allclose(coeffs.mean, cruise)
+
+
 class SpeedModel:
     """A learned model that explains ``share`` of the plant's drag (and, optionally, a constant)."""
 

@@ -117,6 +117,7 @@ class ModelCoefficients:
         self._k = np.where(self.flown, [1.0, 1.0, 0.0], 0.0)  # k per axis: 1 horizontally, 0 vertically and unflown
         self.mean = np.zeros(3)
         self._mean_taken = False
+        self._steady = False  # a steady tick flown since the take-off (the mean is taken again on the first)
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
         self._fits = [prior_fit(self._prior_info)] * 3
         self._started = False
@@ -125,8 +126,10 @@ class ModelCoefficients:
         """A new model: a = 1 again, its mean taken where the vehicle just flew (``r_recent`` (n, 3), the new
         model's residual on the layer's recent ticks), so that what it hands the layer is what it predicts
         there and the layer's re-base has little to move; ``flown`` the new model's axes."""
+        steady = self._steady
         self.flown = np.array(flown, dtype=bool)
         self.reset()
+        self._steady = steady
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
             self._mean_taken = True
@@ -165,17 +168,24 @@ class ModelCoefficients:
         r[:, 2] -= ju[:, 2, 2] * u[:, 2]
         return r
 
-    def tick(self, r: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float, learn: bool) -> np.ndarray:
+    def tick(self, r: np.ndarray, sigma: np.ndarray, omega: np.ndarray, dt: float, learn: bool,
+             steady: bool = True) -> np.ndarray:
         """One tick after the observer's: ``r`` the model's residual for the command flown, ``sigma`` the
         observer's estimate of what ``prediction(r)`` left, ``omega`` its bandwidths [rad/s]. ``learn`` False
-        (a step being tracked, a saturated or frozen tick) keeps a and the fits. Returns the change of the
-        prediction's filtered value, which the observer must take into its estimate (so that model + layer
-        predicts the same acceleration before and after the coefficients move)."""
+        (a step being tracked, a saturated or frozen tick) keeps a and the fits. ``steady`` False: the take-off's
+        climb, after which the mean is taken again. Returns the change of the prediction's filtered value, which
+        the observer must take into its estimate (so that model + layer predicts the same acceleration before
+        and after the coefficients move)."""
         rs = r.tolist()
-        first_mean = not self._mean_taken  # the mean starts where the model is, unless a swap took it
+        # The mean starts where the model is on the first tick, unless a swap took it, and again on the first
+        # steady one: on the climb the model's output is also the ground effect and the inflow, and that mean
+        # decayed for seconds into the pattern (4 mm low with the plant's own air as the model). Taken on the
+        # climb all the same, a model's mass reaches the thrust scale before the pattern.
+        first_mean = not self._mean_taken or (steady and not self._steady)
         self._mean_taken = True
+        self._steady = self._steady or steady
         k_mean = 1.0 if first_mean else min(1.0, dt / self.s.mean_s)
-        if not self._started:  # the first tick: the filtered feature starts where the feature is
+        if not self._started or first_mean:  # the filtered feature starts where the feature is (0 with the mean)
             self._phi_f = [0.0 if first_mean else rs[i] - float(self.mean[i]) for i in range(3)]
             self._started = True
         keep = math.exp(-dt / self.s.memory_s)

@@ -131,7 +131,7 @@ class LoopAdaptation:
         if coeffs is not None and self.layer.s.enabled and not self.layer.estimate.frozen:
             e = self.layer.estimate
             shift = coeffs.tick(self._r, self.layer.sigma, self.layer.omega, self.layer.dt,
-                                learn=not (e.stepping or e.saturated))
+                                learn=not (e.stepping or e.saturated), steady=state == "TRACK")
             self.layer.reexpress(shift)
         if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
