@@ -83,6 +83,8 @@ class SimConfig:
     aero: Literal["ideal", "realistic"] = setting("realistic",
         doc="ideal: rigid body, lagged motors, drag and wind above | realistic: plus aero_terms")
     aero_terms: AeroTerms = AeroTerms()
+    air_model: bool = setting(False,
+        doc="fly the MPC with the plant's own air terms as its model: a bench's ceiling for learning (realistic plant)")
 
 
 @dataclass(frozen=True)

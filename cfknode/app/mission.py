@@ -75,6 +75,8 @@ def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot |
     stored score beside the layer is above ``model_min_score`` on no axis is not flown (``model_not_flown``;
     the line is logged and appended to ``notes``): the flight flies the layer alone."""
     ctrl = cfg.controller
+    if cfg.sim.air_model:
+        return air_model_slot(cfg)
     if ctrl.kind == "geometric":
         if ctrl.model:
             raise ConfigError("controller.model is set but controller.kind is geometric, which uses no model")
@@ -100,6 +102,21 @@ def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot |
             notes.append(note)
         return None
     return ModelSlot(queue, version=1)
+
+
+def air_model_slot(cfg: Config) -> ModelSlot:
+    """``sim.air_model``: the realistic plant's own air terms as the MPC's model (a bench's ceiling)."""
+    why = ("simulation only (backend sim)" if cfg.backend != "sim"
+           else "it needs sim.aero realistic: the ideal plant has no air terms" if cfg.sim.aero != "realistic"
+           else "controller.kind geometric uses no model" if cfg.controller.kind == "geometric"
+           else "it replaces controller.model: set one of them" if cfg.controller.model
+           else "online learning swaps its own models in: not with online.enabled" if cfg.online.enabled
+           else "")
+    if why:
+        raise ConfigError(f"sim.air_model gives the MPC the simulator's air: {why}")
+    from cfknode.sim_backend.air_model import AirModel
+
+    return ModelSlot(AirModel(cfg.sim.aero_terms, cfg.vehicle.gravity, neighbour=cfg.fleet.neighbour_input), version=1)
 
 
 def model_not_flown(cfg: Config, score: Any) -> str | None:
@@ -382,6 +399,8 @@ def _imu_fields(radio: Any, flown: bool) -> dict[str, Any]:
 def _controller_label(cfg: Config, loaded_model: bool, online: bool) -> str:
     if online:
         return "knode-mpc-online (paper lockstep)" if cfg.online.paper_lockstep else "knode-mpc-online"
+    if cfg.sim.air_model:
+        return "mpc + air model (simulator's)"
     return "knode-mpc" if loaded_model else cfg.controller.kind
 
 

@@ -1,0 +1,111 @@
+"""``sim.air_model``: the realistic plant's own air terms as the MPC's model, the ceiling of ``bench learning``.
+
+The model must be the plant's air (the same force for the same state), linearised consistently, refused where
+it would be meaningless, and, flown, it must take what the layer cannot on a manoeuvre where the air turns
+faster than the layer's filters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cfknode.app.config import ConfigError, load_config
+from cfknode.app.mission import build_model_slot
+from cfknode.sim_backend.aero import measured_downwash_force_z, rotor_and_ground_force, rotor_speed_ratio
+from cfknode.sim_backend.air_model import AirModel
+
+CFG = load_config()
+G = CFG.vehicle.gravity
+MASS = CFG.vehicle.mass
+TERMS = CFG.sim.aero_terms
+
+
+def _plant_state(p, v, acc) -> list[float]:
+    """The 17-state (p, v, q wxyz, w, motor forces) of a vehicle whose thrust gives the specific force ``acc`` + g."""
+    thrust = np.asarray(acc, dtype=float) + [0.0, 0.0, G]
+    b = thrust / np.linalg.norm(thrust)
+    q = np.array([1.0 + b[2], -b[1], b[0], 0.0])  # the rotation taking the world z onto b
+    q /= np.linalg.norm(q)
+    motor = MASS * float(np.linalg.norm(thrust)) / 4.0
+    return [*p, *v, *q, 0.0, 0.0, 0.0, motor, motor, motor, motor]
+
+
+@pytest.mark.parametrize("p, v, acc", [
+    ((0.0, 0.0, 1.0), (0.6, -0.3, 0.8), (2.0, -1.0, 1.5)),  # climbing through a turn
+    ((0.2, 0.1, 0.04), (0.5, 0.0, 0.0), (0.0, 0.5, -0.3)),  # over the floor: the ground effect
+    ((0.0, 0.0, 1.0), (-1.2, 0.4, -0.5), (-3.0, 0.0, 0.0)),
+])
+def test_the_model_is_the_plant_s_air_for_the_same_state(p, v, acc):
+    x = _plant_state(p, v, acc)
+    speed = rotor_speed_ratio(*x[13:17], MASS * G / 4.0)
+    force = rotor_and_ground_force(x, (0.0, 0.0, 0.0), TERMS.rotor_drag * MASS * speed, TERMS.inflow * MASS * speed,
+                                   TERMS.ground_effect)
+    model = AirModel(TERMS, G)
+    got = model.evaluate(np.array([*p, *v]), np.array(acc))
+    assert got == pytest.approx(np.array(force) / MASS, abs=1e-9)
+    assert np.linalg.norm(got) > 0.05  # a real force, not two zeros agreeing
+
+
+def test_the_wake_of_the_drone_above_is_the_plant_s():
+    lower, upper = np.array([0.0, 0.0, 1.0]), np.array([0.03, -0.02, 1.3])
+    expected = measured_downwash_force_z(lower, upper, MASS * G, TERMS.downwash, TERMS.downwash_width) / MASS
+    model = AirModel(TERMS, G, neighbour=True)
+    assert model.takes_neighbour and not AirModel(TERMS, G).takes_neighbour
+    x, u = np.array([*lower, 0.0, 0.0, 0.0]), np.zeros(3)
+    assert model.evaluate(x, u, upper)[2] == pytest.approx(expected, rel=1e-9)
+    assert expected < -1.0  # a quarter of the weight, about
+    assert model.evaluate(x, u, lower + [0.0, 0.0, -0.3])[2] == pytest.approx(0.0, abs=1e-12)  # a drone below: none
+    assert model.evaluate(x, u)[2] == pytest.approx(0.0, abs=1e-12)  # no drone above
+
+
+def test_the_linearisation_is_exact_at_the_nodes_and_close_nearby():
+    rng = np.random.default_rng(3)
+    x = np.column_stack([rng.uniform(-1, 1, (20, 2)), rng.uniform(0.02, 1.5, 20), rng.uniform(-1.5, 1.5, (20, 3))])
+    u = rng.uniform(-3, 3, (20, 3))
+    nb = x[:, 0:3] + [0.02, 0.0, 0.3]
+    model = AirModel(TERMS, G, neighbour=True)
+    c, jx, ju = model.linearise(x, u, nb)
+    assert c.shape == (20, 3) and jx.shape == (20, 3, 6) and ju.shape == (20, 3, 3)
+    affine = lambda xs, us: c + np.einsum("nij,nj->ni", jx, xs) + np.einsum("nij,nj->ni", ju, us)  # noqa: E731
+    assert affine(x, u) == pytest.approx(model.evaluate(x, u, nb), abs=1e-9)
+    # Off the nodes the error is second order; the wake is a known force there, with no slope in the position.
+    dx, du = 1e-4 * rng.standard_normal((20, 6)), 1e-4 * rng.standard_normal((20, 3))
+    dx[:, 2] = 0.0  # the ground table's kinks are the one non-smooth input
+    c0, jx0, ju0 = model.linearise(x, u)
+    assert jx == pytest.approx(jx0) and ju == pytest.approx(ju0)
+    wake = model.evaluate(x, u, nb) - model.evaluate(x, u)
+    assert affine(x + dx, u + du) == pytest.approx(model.evaluate(x + dx, u + du) + wake, abs=1e-6)
+    assert np.abs(jx[:, 0:2, 3:5]).max() > 0.2  # the drag's slope, about 0.25 per m/s
+
+
+@pytest.mark.parametrize("overrides, why", [
+    ({"online.enabled": True}, "online learning"),
+    ({"controller.model": "some.ckpt"}, "controller.model"),
+    ({"sim.aero": "ideal"}, "ideal plant"),
+    ({"controller.kind": "geometric"}, "geometric"),
+    ({"backend": "cf"}, "simulation only"),
+])
+def test_the_air_model_is_refused_where_it_means_nothing(overrides, why):
+    cfg = load_config(overrides={"sim.air_model": True, **overrides})
+    with pytest.raises(ConfigError, match=why):
+        build_model_slot(cfg)
+
+
+def test_the_air_model_is_flown_from_the_config():
+    slot = build_model_slot(load_config(overrides={"sim.air_model": True}))
+    assert slot is not None and isinstance(slot.model, AirModel) and slot.model.beyond_layer is None
+    assert build_model_slot(load_config()) is None  # off by default: the plain MPC
+
+
+@pytest.mark.slow
+def test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot(tmp_path):
+    """The vertical oscillation's inflow turns every second: the layer's 0.5-1 Hz offset lags it, the model knows it."""
+    from cfknode.app.bench.learning import Job, run_job
+    from cfknode.app.bench.learning_cells import CELLS
+
+    cell = next(c for c in CELLS if c.name == "vertical A=0.3 f=0.5")
+    runs = {row: run_job(Job(cell, row, 0, str(tmp_path), 4.0)) for row in ("layer", "air+layer")}
+    assert all(math.isfinite(r.mse) and not r.fell and not r.tripped for r in runs.values())
+    assert runs["air+layer"].mse < 0.5 * runs["layer"].mse
