@@ -129,7 +129,7 @@ def test_the_table_has_a_row_per_controller_and_ratios_seed_by_seed():
     assert "`cfknode bench learning`, cfknode 0.1.0, mode full" in md and "Refused" in md
     rows = [line for line in md.splitlines() if line.startswith("| ") and "MPC" in line]
     assert len(rows) == 4
-    assert "| circle r=0.5 v=1 | 0.50 | 0.25 | 0.75 |" in md
+    assert "| circle r=0.5 v=1 | 0.50 | 0.25 | 0.75 | - |" in md  # no ceiling row flown: its ratio is "-"
 
 
 @pytest.mark.slow
@@ -143,8 +143,9 @@ def test_quick_bench_flies_every_row_through_the_real_path(tmp_path, capsys):
     assert sorted(r["controller"] for r in data["runs"]) == sorted(CONTROLLERS)  # every row landed in the table
     assert all(r["cell"] == QUICK_CELLS[0] and r["mse"] > 0.0 for r in data["runs"])
     md = (tmp_path / "learning_quick.md").read_text()
-    assert md.count("| KNODE-MPC-Online") == 2 and md.count("| nominal MPC") == 1 and md.count("| MPC + layer") == 1
-    assert len((tmp_path / "learning_quick_runs.jsonl").read_text().splitlines()) == 4  # each flight as it landed
+    assert md.count("| KNODE-MPC-Online") == 2 and md.count("| nominal MPC") == 1 and md.count("| MPC + layer |") == 1
+    assert md.count("| MPC + layer + the plant's air (ceiling) |") == 1
+    assert len((tmp_path / "learning_quick_runs.jsonl").read_text().splitlines()) == 5  # each flight as it landed
 
 
 def test_a_crossing_cell_hovers_one_drone_over_the_other_s_line_for_ten_passes():
@@ -172,6 +173,26 @@ def test_a_flight_that_could_not_fly_is_a_row_not_the_end_of_the_bench():
     md = markdown([cell], [], [ok, run], tuple(CONTROLLERS), "cmd", "0.1.0", "full", "dob")
     assert "| KNODE-MPC-Online (paper) | did not fly |" in md and "Did not fly (counted as trips)" in md
     assert math.isnan(ratio([ok, run], cell.name, "online", "layer"))
+
+
+def test_rows_can_be_chosen_and_the_table_says_which():
+    from cfknode.app.bench.learning import _command, select_rows
+    from cfknode.app.errors import UsageError
+
+    assert select_rows("") == tuple(CONTROLLERS)
+    assert select_rows("air+layer, layer") == ("layer", "air+layer")  # the table's order, not the flag's
+    with pytest.raises(UsageError, match="unknown row"):
+        select_rows("layer,oracle")
+    args = argparse.Namespace(quick=False, seeds=3, groups="", cells="", rows="layer,air+layer", duration=0.0,
+                              fixed_latency=0.1, config="", set=[])
+    assert "--rows 'layer,air+layer'" in _command(args, argparse.Namespace(command_flags=lambda: "--jobs 2"))
+
+
+def test_the_ceiling_row_flies_the_plant_s_air_beside_the_layer():
+    job = Job(BY_NAME["crossing dz=0.3 v=1"], "air+layer", 0, "/tmp", 4.0)
+    cfg = load_config(overrides=flight_overrides(job))
+    assert cfg.sim.air_model and cfg.fleet.neighbour_input and not cfg.online.enabled
+    assert cfg.controller.adaptation == load_config().controller.adaptation  # the configured layer
 
 
 def test_every_cell_can_be_named_on_the_command_line():

@@ -210,8 +210,10 @@ def markdown(cells: list[LearnCell], refused: list[str], runs: list[Run], contro
     if refused:
         lines += ["", "Refused (the Crazyflie cannot fly them): " + "; ".join(refused) + "."]
     rows = [(c.name, ratio(runs, c.name, "online+layer", "layer"), ratio(runs, c.name, "online+layer", "nominal"),
-             ratio(runs, c.name, "online", "nominal")) for c in cells if any(r.cell == c.name for r in runs)]
-    lines += ["", "| cell | online+layer / layer | online+layer / nominal | online (paper) / nominal |", "|---|---|---|---|"]
+             ratio(runs, c.name, "online", "nominal"), ratio(runs, c.name, "air+layer", "layer"))
+            for c in cells if any(r.cell == c.name for r in runs)]
+    lines += ["", "| cell | online+layer / layer | online+layer / nominal | online (paper) / nominal | "
+              "the plant's air + layer / layer (ceiling) |", "|---|---|---|---|---|"]
     lines += [f"| {n} | " + " | ".join(f"{v:.2f}" if math.isfinite(v) else "-" for v in vs) + " |" for n, *vs in rows]
     return "\n".join(lines)
 
@@ -228,6 +230,7 @@ def add_learning_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--groups", default="", help=f"comma-separated subset of {', '.join(GROUPS)} (default: all)")
     p.add_argument("--cells", default="", help="comma-separated cell names (default: every cell of the groups)")
     p.add_argument("--duration", type=float, default=0.0, help="s of pattern, overriding the cells' (0: theirs)")
+    p.add_argument("--rows", default="", help=f"comma-separated subset of the rows {', '.join(CONTROLLERS)} (default: all)")
     p.add_argument("--config", default="", metavar="FILE",
                    help="a YAML file overriding the defaults on every flight (e.g. "
                         "examples/learning-beside-the-layer.yaml); --set comes after it")
@@ -252,6 +255,17 @@ def select_cells(args: argparse.Namespace) -> list[LearnCell]:
     if any(n not in known for n in names):
         raise UsageError(f"unknown cell(s) {', '.join(n for n in names if n not in known)}; known: {', '.join(known)}")
     return [c for c in CELLS if (c.name in names) or (not names and c.group in groups)]
+
+
+def select_rows(text: str) -> tuple[str, ...]:
+    """``--rows``: the named rows in the table's order (all of them for an empty string)."""
+    from cfknode.app.errors import UsageError
+
+    names = {n.strip() for n in text.split(",") if n.strip()}
+    unknown = sorted(names - set(CONTROLLERS))
+    if unknown:
+        raise UsageError(f"unknown row(s) {', '.join(unknown)}; known: {', '.join(CONTROLLERS)}")
+    return tuple(c for c in CONTROLLERS if not names or c in names)
 
 
 def cell_refusal(cell: LearnCell, extra: tuple[tuple[str, Any], ...] = ()) -> str | None:
@@ -312,7 +326,7 @@ def run_learning(args: argparse.Namespace, version: str) -> int:
     duration = args.duration or (QUICK_DURATION if args.quick else 0.0)
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-learning-", dir=out))
-    controllers = tuple(CONTROLLERS)
+    controllers = select_rows(args.rows)
     jobs = [Job(c, k, s, str(logs), duration or c.duration, extra, args.fixed_latency)
             for c in cells for s in seeds for k in controllers]
     mode = "quick" if args.quick else "full"
@@ -359,7 +373,7 @@ def _finite(value: Any) -> Any:
 
 def _command(args: argparse.Namespace, executor: Any) -> str:
     cmd = "cfknode bench learning" + (" --quick" if args.quick else f" --seeds {args.seeds}") + f" {executor.command_flags()}"
-    for flag, value in (("--groups", args.groups), ("--cells", args.cells)):
+    for flag, value in (("--groups", args.groups), ("--cells", args.cells), ("--rows", getattr(args, "rows", ""))):
         if value:
             cmd += f" {flag} '{value}'"
     if args.duration:
@@ -371,4 +385,4 @@ def _command(args: argparse.Namespace, executor: Any) -> str:
 
 
 __all__ = ["Job", "Run", "add_learning_arguments", "cell_table", "flight_overrides", "markdown", "median_mse", "ratio",
-           "run_job", "run_learning", "select_cells"]
+           "run_job", "run_learning", "select_cells", "select_rows"]

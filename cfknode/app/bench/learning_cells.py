@@ -31,12 +31,17 @@ CONTROLLERS: dict[str, dict[str, Any]] = {
     "layer": {"controller.kind": "mpc", "online.enabled": False},
     "online+layer": {"controller.kind": "mpc", "online.enabled": True},
     "online": {"controller.kind": "mpc", "controller.adaptation": "none", "online.enabled": True},  # the paper's
+    # The ceiling: the layer beside the plant's own air terms as the model (sim.air_model), the best any model
+    # of the state could learn; in a fleet it takes the drone above's position, as the learner's networks do.
+    "air+layer": {"controller.kind": "mpc", "online.enabled": False, "sim.air_model": True,
+                  "fleet.neighbour_input": True},
 }
 LABELS = {
     "nominal": "nominal MPC",
     "layer": "MPC + layer",
     "online+layer": "KNODE-MPC-Online + layer",
     "online": "KNODE-MPC-Online (paper)",
+    "air+layer": "MPC + layer + the plant's air (ceiling)",
 }
 TILT_MARGIN_DEG = 10.0  # the MPC may tilt this much more than the pattern needs: room to correct errors
 MAX_PLANNED_TILT_DEG = 50.0  # deg: 10 under the supervisor's tumble limit (safety.max_tilt_deg, 60)
