@@ -99,7 +99,6 @@ def test_the_air_model_is_flown_from_the_config():
     assert build_model_slot(load_config()) is None  # off by default: the plain MPC
 
 
-@pytest.mark.slow
 def test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot(tmp_path):
     """The vertical oscillation's inflow turns every second: the layer's 0.5-1 Hz offset lags it, the model knows it."""
     from cfknode.app.bench.learning import Job, run_job
