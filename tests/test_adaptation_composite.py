@@ -68,7 +68,8 @@ def test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb() -> N
     """On the take-off's climb a model's output is also the ground effect and the inflow: the mean taken there
     (so that a model's mass reaches the thrust scale before the pattern) is taken again, at once, on the first
     steady tick, where the model is; the prediction stays continuous through the observer (the shift), and the
-    filtered feature starts again with it. A swap's mean survives; a new take-off climbs again."""
+    filtered feature starts again with it. A swap's mean (the recent ticks', not one tick's) is kept, on the climb
+    too; a new take-off climbs again."""
     settings = CoefficientSettings((0.0, 1.5), 4.0, 0.05, 4.0)
     coeffs = ModelCoefficients(settings, RATE)
     sigma, omega = np.zeros(3), np.full(3, 2.0 * math.pi)
@@ -89,6 +90,10 @@ def test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb() -> N
     coeffs.restart(np.tile(cruise, (5, 1)))  # a swap: its mean is where the vehicle flew, and stays
     coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=True)
     assert coeffs.mean[2] == pytest.approx(-0.3 + (0.9 + 0.3) / (4.0 * RATE))
+    coeffs.reset()
+    coeffs.restart(np.tile(climb, (5, 1)))  # a swap on the climb: its mean is the recent ticks', not taken again
+    coeffs.tick(cruise, sigma, omega, 1.0 / RATE, learn=False, steady=True)
+    assert coeffs.mean[2] == pytest.approx(0.9 + (-0.3 - 0.9) / (4.0 * RATE))
     coeffs.reset()  # landed: the next take-off climbs again
     coeffs.tick(climb, sigma, omega, 1.0 / RATE, learn=False, steady=False)
     coeffs.tick(cruise, sigma, omega, 1.0 / RATE, learn=False, steady=True)

@@ -117,7 +117,7 @@ class ModelCoefficients:
         self._k = np.where(self.flown, [1.0, 1.0, 0.0], 0.0)  # k per axis: 1 horizontally, 0 vertically and unflown
         self.mean = np.zeros(3)
         self._mean_taken = False
-        self._steady = False  # a steady tick flown since the take-off (the mean is taken again on the first)
+        self._steady = False  # a steady tick flown since the take-off or a swap (the first tick's mean is taken again)
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
         self._fits = [prior_fit(self._prior_info)] * 3
         self._started = False
@@ -126,10 +126,11 @@ class ModelCoefficients:
         """A new model: a = 1 again, its mean taken where the vehicle just flew (``r_recent`` (n, 3), the new
         model's residual on the layer's recent ticks), so that what it hands the layer is what it predicts
         there and the layer's re-base has little to move; ``flown`` the new model's axes."""
-        steady = self._steady
         self.flown = np.array(flown, dtype=bool)
         self.reset()
-        self._steady = steady
+        # A swap's mean is the recent ticks', not one tick's at the floor: it is not taken again (online models
+        # swapped in on the climb flew 1.3-1.9x the layer on a 150 ms motor lag when it was).
+        self._steady = True
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
             self._mean_taken = True
