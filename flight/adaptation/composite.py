@@ -112,7 +112,7 @@ class ModelCoefficients:
 
     def reset(self) -> None:
         """The model as it is: a = 1 (0 where it does not fly); its mean is taken on the first tick flown
-        (take-off, landing, a new model)."""
+        (take-off, landing, a new model) and again on the first tracking tick after the climb."""
         self.a = self.flown.astype(float)
         self._k = np.where(self.flown, [1.0, 1.0, 0.0], 0.0)  # k per axis: 1 horizontally, 0 vertically and unflown
         self.mean = np.zeros(3)

@@ -373,7 +373,7 @@ def _finite(value: Any) -> Any:
 
 def _command(args: argparse.Namespace, executor: Any) -> str:
     cmd = "cfknode bench learning" + (" --quick" if args.quick else f" --seeds {args.seeds}") + f" {executor.command_flags()}"
-    for flag, value in (("--groups", args.groups), ("--cells", args.cells), ("--rows", getattr(args, "rows", ""))):
+    for flag, value in (("--groups", args.groups), ("--cells", args.cells), ("--rows", args.rows)):
         if value:
             cmd += f" {flag} '{value}'"
     if args.duration:
