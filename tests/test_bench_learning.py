@@ -211,7 +211,7 @@ def test_a_config_file_becomes_every_flight_s_overrides_before_the_command_line_
     assert extra["online.layer_replay_windows"] == 7 and extra["online.gate_layer_min_pairs"] == 400
     job = Job(BY_NAME["vertical A=0.3 f=0.5"], "online+layer", 0, str(tmp_path), 2.0, tuple(extra.items()))
     cfg = load_config(overrides=flight_overrides(job))
-    assert cfg.online.layer_input_bounds and cfg.online.layer_filter_hz == 2.0
+    assert cfg.online.layer_filter_hz == 2.0 and cfg.online.gate_layer_min_gain == 0.005
     args = argparse.Namespace(quick=True, seeds=1, groups="", cells="", rows="", duration=0.0, fixed_latency=0.1,
                               config=str(profile), set=["online.layer_weight_decay=0.1"])
     executor = argparse.Namespace(command_flags=lambda: "--jobs 1")
