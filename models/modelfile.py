@@ -48,6 +48,8 @@ N_IN = len(INPUT_NAMES)
 NEIGHBOUR_NAMES = ("nbx", "nby", "nbz")  # neighbour minus self, world frame, m
 NEIGHBOUR_INPUT_NAMES = INPUT_NAMES + NEIGHBOUR_NAMES
 INPUT_LAYOUTS = (INPUT_NAMES, NEIGHBOUR_INPUT_NAMES)
+# An input scale this large switches the input off ((z - m) / s ~ 1e-9): a wake-only network (docs/fleet.md).
+MASKED_INPUT_SCALE = 1e9
 N_OUT = len(OUTPUT_NAMES)
 
 # A header larger than this is not one of ours (ours are a few kB): refuse before parsing it.
@@ -461,6 +463,7 @@ __all__ = [
     "FORMAT_VERSION",
     "INPUT_LAYOUTS",
     "INPUT_NAMES",
+    "MASKED_INPUT_SCALE",
     "NEIGHBOUR_INPUT_NAMES",
     "NEIGHBOUR_NAMES",
     "OUTPUT_NAMES",

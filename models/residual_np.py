@@ -14,7 +14,8 @@ The residual acts on v' only and its inputs are z = (v, u): the Jacobian with re
 position is exactly zero. A queue with the neighbour input (a fleet's ``fleet.neighbour_input``,
 docs/fleet.md#neighbour-input) also sees d = p_nb - p, the relative position of the drone above: the
 MPC's linearisation takes the neighbour's positions at its nodes (``nb``, known parameters), so its
-Jacobian with respect to the drone's own position is -dr/dd. Without ``nb`` (the gate, the monitor, the
+Jacobian with respect to the drone's own position is -dr/dd (none for a wake-only queue, ``fleet.wake_only``:
+a known force at each node). Without ``nb`` (the gate, the monitor, the
 layer's re-base) d is the newest network's input mean: where the model was trained.
 """
 
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.models.input_bounds import stored_bounds
-from cfknode.models.modelfile import N_IN, N_OUT, ModelFile
+from cfknode.models.modelfile import MASKED_INPUT_SCALE, N_IN, N_OUT, ModelFile
 from cfknode.models.residual_check import stored_score
 
 
@@ -48,6 +49,8 @@ class ResidualQueue:
         self.neighbour_default = neighbour_default
         # Output biases are summed once: the weighted sum over networks of constants.
         self._out_bias = layers[-1].bias.sum(axis=0) if layers else np.zeros((1, N_OUT))
+        # The networks see only the neighbour's relative position (trainer_process.online_normalisation).
+        self.wake_only = False
         # cfknode train's held-out per-axis score beside the fast layer (residual_check.py); None: not stored.
         self.beyond_layer: np.ndarray | None = None
         # Per network, the inputs' range it was trained on, (p, 1, n_in) each (input_bounds.py); None: unbounded.
@@ -86,6 +89,8 @@ class ResidualQueue:
                 )
             )
         queue = cls(tuple(stacked), mf.activation, len(mf.networks), default)
+        queue.wake_only = mf.takes_neighbour and all(
+            bool(np.all(net.normalisation.input_scale[:N_IN] >= MASKED_INPUT_SCALE)) for net in mf.networks)
         queue.beyond_layer = stored_score(mf.extra)
         bounds = stored_bounds(mf.extra, len(mf.networks))
         if bounds is not None and bounds.shape[2] == stacked[0].weight.shape[2]:
@@ -171,8 +176,10 @@ class ResidualQueue:
         jx[:, :, 3:6] = jz[:, :, 0:3]
         ju = np.ascontiguousarray(jz[:, :, 3:6])
         c = value - np.matmul(jz[:, :, 0:N_IN], z[:, 0:N_IN, None])[:, :, 0]
-        if z.shape[1] > N_IN and nb is not None:
+        if z.shape[1] > N_IN and nb is not None and not self.wake_only:
             # d = nb - p with nb known: dr/dp = -dr/dd, so c gains +dr/dd p_bar (held d adds nothing to x's terms).
+            # A wake-only queue is flown as a known force at each node, as the plant's own air model is
+            # (sim_backend/air_model.py): given the slope of a jet a few cm wide the MPC works against it.
             jd = jz[:, :, N_IN:]
             jx[:, :, 0:3] = -jd
             c = c + np.matmul(jd, x_nodes[:, 0:3, None])[:, :, 0]

@@ -43,7 +43,7 @@ import numpy as np
 
 from cfknode.models.input_bounds import BOUNDS_KEY, data_bounds, queue_bounds
 from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
-from cfknode.models.modelfile import ModelFile, Normalisation
+from cfknode.models.modelfile import MASKED_INPUT_SCALE, ModelFile, Normalisation
 
 CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)
 # Stop signals the trainer ignores: a Ctrl-C in the terminal reaches its whole process group,
@@ -100,6 +100,8 @@ class TrainerSettings:
     preload: tuple[str, ...] = ()
     # Store each new network's input range with the model (models/input_bounds.py): the flight holds it there.
     input_bounds: bool = False
+    # With the neighbour input: the networks see only the neighbour's relative position (``online_normalisation``).
+    wake_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -255,7 +257,7 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
             t0=min(older.t0, dataset.t0),
             sources=older.sources + dataset.sources,
         )
-    norm = online_normalisation(fit_normalisation(dataset))
+    norm = online_normalisation(fit_normalisation(dataset), settings.wake_only)
     seed = settings.training.seed + request.round
     base = request.base
     if base is None or not base.networks:
@@ -263,7 +265,10 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
         queue.push()
     else:
         queue = to_torch_queue(base, seed=seed)
-        if settings.warm_start:
+        # A network that saw the drone's own inputs is not carried into a wake-only one: the masked scale would
+        # keep its function, inputs and all.
+        masked = bool(np.all(base.networks[-1].normalisation.input_scale[:6] >= MASKED_INPUT_SCALE))
+        if settings.warm_start and masked == settings.wake_only:
             net = queue.push(copy_from_newest=True)
             renormalise(net, norm)
         else:
@@ -301,10 +306,17 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     )
 
 
-def online_normalisation(fitted: Normalisation) -> Normalisation:
-    """``fitted`` with its input scales raised to the online floors (see ONLINE_VELOCITY_SCALE)."""
+def online_normalisation(fitted: Normalisation, wake_only: bool = False) -> Normalisation:
+    """``fitted`` with its input scales raised to the online floors (see ONLINE_VELOCITY_SCALE).
+
+    ``wake_only`` (a network with the neighbour input): the drone's own velocity and command are switched
+    off (``MASKED_INPUT_SCALE``). In a wake the controller answers the force (more thrust, a dip, slower
+    along the line), so in closed-loop data those inputs follow the wake, and a network given them explained
+    it by them: slopes of -1 on the vertical command and +6 1/s on the vertical speed, which the MPC then
+    flies as a feedback (docs/fleet.md#wake-only)."""
     extra = len(fitted.input_scale) - 6  # the neighbour's relative position keeps its fitted scale
-    floors = np.array([ONLINE_VELOCITY_SCALE] * 3 + [ONLINE_ACCELERATION_SCALE] * 3 + [0.0] * extra)
+    own = MASKED_INPUT_SCALE if wake_only and extra else 0.0
+    floors = np.array([max(ONLINE_VELOCITY_SCALE, own)] * 3 + [max(ONLINE_ACCELERATION_SCALE, own)] * 3 + [0.0] * extra)
     return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), fitted.output_scale)
 
 

@@ -52,8 +52,8 @@ class AirModel:
 
         The wake enters as a known force at each node, without its slope in the position: the jet is 6 cm wide,
         and given that slope (up to 20 m/s^2 per m) the MPC steered out of it sideways, 46x the layer's MSE
-        on the stacked pair. (A learned neighbour model, residual_np.py, is flown with its slope: a network
-        fitted to the wake is smoother than the 6 cm Gaussian.)"""
+        on the stacked pair. (A learned neighbour model, residual_np.py, is flown the same way when it sees
+        the neighbour alone, ``fleet.wake_only``, and with its slope otherwise.)"""
         x0 = np.asarray(x_nodes, dtype=float)
         u0 = np.asarray(u_nodes, dtype=float)
         n = x0.shape[0]

@@ -524,6 +524,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": BOTH,
         "test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer": FAST,
     },
+    "test_wake_only.py": {
+        "*": FAST,
+        "test_on_the_crossing_the_learned_wake_flies_below_the_layer_alone": BOTH,
+    },
 }
 
 # Files that share something outside their process run on one pytest-xdist worker, one at a time.
@@ -534,7 +538,7 @@ GROUPS: dict[str, str] = {"test_bench_executor.py": "ray", "test_fleet_ray.py": 
 LONGEST: tuple[str, ...] = (
     "test_bench_hierarchical.py", "test_bench_paper.py", "ray", "test_faults.py", "test_online_flight.py",
     "test_fleet_online.py", "test_bench_online.py", "test_learner_with_layer.py", "test_fleet.py",
-    "test_thrust_limit.py", "test_fleet_signals.py", "test_bounded_inputs.py", "test_replay.py",
+    "test_thrust_limit.py", "test_fleet_signals.py", "test_bounded_inputs.py", "test_replay.py", "test_wake_only.py",
 )
 
 

@@ -39,6 +39,8 @@ from cfknode.models.trainer_process import TrainerSettings
 
 def check_online(cfg: Config) -> None:
     """Refuse configurations online learning cannot fly (one-line ``ConfigError``)."""
+    if cfg.fleet.wake_only and not cfg.fleet.neighbour_input:
+        raise ConfigError("fleet.wake_only needs fleet.neighbour_input true: without it the networks would see nothing")
     if not cfg.online.enabled:
         return
     if cfg.controller.kind == "geometric":
@@ -70,7 +72,13 @@ def trainer_settings(cfg: Config) -> TrainerSettings:
     nice = o.trainer_nice if wall_clock(cfg) else 0
     # The trainer also judges the candidates (flight/learning/install.py): the gate's imports before take-off.
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject, nice,
-                           preload=("cfknode.flight.learning.install",), input_bounds=layer and o.layer_input_bounds)
+                           preload=("cfknode.flight.learning.install",), input_bounds=layer and o.layer_input_bounds,
+                           wake_only=wake_only(cfg))
+
+
+def wake_only(cfg: Config) -> bool:
+    """Whether a fleet drone's networks see the neighbour's relative position alone (docs/fleet.md#wake-only)."""
+    return cfg.fleet.size >= 2 and cfg.fleet.neighbour_input and cfg.fleet.wake_only
 
 
 def wall_clock(cfg: Config) -> bool:
@@ -105,6 +113,7 @@ def learner_settings(
         min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
         held_limits=gate_limits(cfg, speed, layer_live=False) if layer else None,
+        wake_only=wake_only(cfg),
     )
 
 

@@ -48,6 +48,8 @@ class LearnerSettings:
     # The gate's limits for fresh data the fast layer measured nothing on (held near the floor): there it supplied
     # no constant, so a candidate is judged with its constants, as without a layer (None: ``limits`` always).
     held_limits: GateLimits | None = None
+    # The networks see the neighbour alone (fleet.wake_only): the layer's steps and settling do not cut windows.
+    wake_only: bool = False
 
 
 @dataclass(frozen=True)

@@ -44,12 +44,16 @@ class WindowRecorder:
 
     def __init__(
         self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None,
-        min_height: float = MIN_HEIGHT, neighbour: Any = None,
+        min_height: float = MIN_HEIGHT, neighbour: Any = None, wake_only: bool = False,
     ) -> None:
         """``ground_z``: the floor's height; ticks within ``min_height`` of it are not recorded
         (None: no floor rule, for a flight that starts in the air or a plant without ground).
         ``neighbour``: a fleet drone's ``NeighbourFeed`` (flight/neighbours.py): each tick also records the
-        relative position of the drone above, and windows carry it (``Window.nb``); None: not recorded."""
+        relative position of the drone above, and windows carry it (``Window.nb``); None: not recorded.
+        ``wake_only``: the networks see that position alone (fleet.wake_only), so the layer's step alarms and its
+        moving thrust scale cut no window: a pass under the drone above is what the layer takes for a step (30 of
+        41 windows of a crossing were dropped as unsettled), and a network of the neighbour's position alone cannot
+        hold the layer's mass."""
         self.t_col = t_col
         self.start_time = start_time
         # A longer gap between ticks (flown blind, or by another controller) ends the run; lockstep
@@ -67,6 +71,7 @@ class WindowRecorder:
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
         self._ground = ground_z
+        self._wake_only = wake_only
         self._min_height = min_height
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
@@ -85,7 +90,7 @@ class WindowRecorder:
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
             or getattr(tick, "saturated", False)
-            or (layer is not None and layer.stepping)  # the layer is tracking a step
+            or (layer is not None and layer.stepping and not self._wake_only)  # the layer is tracking a step
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + self._min_height)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
@@ -117,7 +122,7 @@ class WindowRecorder:
             return None
         w0, self._w0 = self._w0, self._n
         scale = self._s[w0 : self._n]
-        if float(scale.max() - scale.min()) > SETTLING_SPAN * float(scale.min()):
+        if not self._wake_only and float(scale.max() - scale.min()) > SETTLING_SPAN * float(scale.min()):
             self.unsettled += 1
             return None
         self.windows += 1

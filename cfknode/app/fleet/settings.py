@@ -29,5 +29,7 @@ class FleetConfig:
     name_prefix: str = setting(doc="drones cf1, cf2, ...: log channels /cf1/state, e-stop names sim-cf1")
     neighbour_input: bool = setting(
         doc="online learning: each drone's model also sees where the nearest drone above is (docs/fleet.md#neighbour-input)")
+    wake_only: bool = setting(
+        doc="with neighbour_input: the model sees only that, not the drone's own velocity and command (docs/fleet.md#wake-only)")
     ray_radio_resource: str = setting(
         doc="--executor ray: the Ray resource of the node with the drone's radio (docs/fleet-ray.md)")
