@@ -48,7 +48,7 @@ N_IN = len(INPUT_NAMES)
 NEIGHBOUR_NAMES = ("nbx", "nby", "nbz")  # neighbour minus self, world frame, m
 NEIGHBOUR_INPUT_NAMES = INPUT_NAMES + NEIGHBOUR_NAMES
 INPUT_LAYOUTS = (INPUT_NAMES, NEIGHBOUR_INPUT_NAMES)
-# An input scale this large switches the input off ((z - m) / s ~ 1e-9): a wake-only network (docs/fleet.md).
+# An input scale this large switches the input off ((z - m) / s ~ 1e-9), its inverse as an output scale the output.
 MASKED_INPUT_SCALE = 1e9
 N_OUT = len(OUTPUT_NAMES)
 

@@ -313,11 +313,15 @@ def online_normalisation(fitted: Normalisation, wake_only: bool = False) -> Norm
     off (``MASKED_INPUT_SCALE``). In a wake the controller answers the force (more thrust, a dip, slower
     along the line), so in closed-loop data those inputs follow the wake, and a network given them explained
     it by them: slopes of -1 on the vertical command and +6 1/s on the vertical speed, which the MPC then
-    flies as a feedback (docs/fleet.md#wake-only)."""
+    flies as a feedback. Its horizontal outputs are off too: on a line the neighbour's position also says
+    where along it the drone is, and a network fitted the attitude loop's lag there (docs/fleet.md#wake-only)."""
     extra = len(fitted.input_scale) - 6  # the neighbour's relative position keeps its fitted scale
     own = MASKED_INPUT_SCALE if wake_only and extra else 0.0
     floors = np.array([max(ONLINE_VELOCITY_SCALE, own)] * 3 + [max(ONLINE_ACCELERATION_SCALE, own)] * 3 + [0.0] * extra)
-    return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), fitted.output_scale)
+    out = fitted.output_scale.copy()
+    if wake_only and extra:  # the wake acts downward: the horizontal outputs are off (their scale's inverse)
+        out[0:2] = 1.0 / MASKED_INPUT_SCALE
+    return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), out)
 
 
 def renormalise(net: Any, norm: Normalisation) -> None:
