@@ -75,11 +75,12 @@ class Normalisation:
         return cls(np.zeros(n_in), np.ones(n_in), np.ones(N_OUT))
 
     def to_json(self) -> dict[str, list[float]]:
-        return {
-            "input_mean": [float(v) for v in self.input_mean],
-            "input_scale": [float(v) for v in self.input_scale],
-            "output_scale": [float(v) for v in self.output_scale],
-        }
+        return {k: [float(v) for v in getattr(self, k)] for k in ("input_mean", "input_scale", "output_scale")}
+
+    @property
+    def wake_only(self) -> bool:
+        """The drone's own inputs switched off: a network of the neighbour's position alone (``fleet.wake_only``)."""
+        return len(self.input_scale) > N_IN and bool(np.all(self.input_scale[:N_IN] >= MASKED_INPUT_SCALE))
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.models.input_bounds import stored_bounds
-from cfknode.models.modelfile import MASKED_INPUT_SCALE, N_IN, N_OUT, ModelFile
+from cfknode.models.modelfile import N_IN, N_OUT, ModelFile
 from cfknode.models.residual_check import stored_score
 
 
@@ -89,8 +89,7 @@ class ResidualQueue:
                 )
             )
         queue = cls(tuple(stacked), mf.activation, len(mf.networks), default)
-        queue.wake_only = mf.takes_neighbour and all(
-            bool(np.all(net.normalisation.input_scale[:N_IN] >= MASKED_INPUT_SCALE)) for net in mf.networks)
+        queue.wake_only = all(net.normalisation.wake_only for net in mf.networks)
         queue.beyond_layer = stored_score(mf.extra)
         bounds = stored_bounds(mf.extra, len(mf.networks))
         if bounds is not None and bounds.shape[2] == stacked[0].weight.shape[2]:

@@ -267,8 +267,7 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
         queue = to_torch_queue(base, seed=seed)
         # A network that saw the drone's own inputs is not carried into a wake-only one: the masked scale would
         # keep its function, inputs and all.
-        masked = bool(np.all(base.networks[-1].normalisation.input_scale[:6] >= MASKED_INPUT_SCALE))
-        if settings.warm_start and masked == settings.wake_only:
+        if settings.warm_start and base.networks[-1].normalisation.wake_only == settings.wake_only:
             net = queue.push(copy_from_newest=True)
             renormalise(net, norm)
         else:
@@ -316,12 +315,11 @@ def online_normalisation(fitted: Normalisation, wake_only: bool = False) -> Norm
     flies as a feedback. Its horizontal outputs are off too: on a line the neighbour's position also says
     where along it the drone is, and a network fitted the attitude loop's lag there (docs/fleet.md#wake-only)."""
     extra = len(fitted.input_scale) - 6  # the neighbour's relative position keeps its fitted scale
-    own = MASKED_INPUT_SCALE if wake_only and extra else 0.0
-    floors = np.array([max(ONLINE_VELOCITY_SCALE, own)] * 3 + [max(ONLINE_ACCELERATION_SCALE, own)] * 3 + [0.0] * extra)
-    out = fitted.output_scale.copy()
-    if wake_only and extra:  # the wake acts downward: the horizontal outputs are off (their scale's inverse)
-        out[0:2] = 1.0 / MASKED_INPUT_SCALE
-    return Normalisation(fitted.input_mean, np.maximum(fitted.input_scale, floors), out)
+    floors = np.array([ONLINE_VELOCITY_SCALE] * 3 + [ONLINE_ACCELERATION_SCALE] * 3 + [0.0] * extra)
+    scale, out = np.maximum(fitted.input_scale, floors), fitted.output_scale.copy()
+    if wake_only and extra:  # own inputs off; the wake acts downward, so the horizontal outputs off too
+        scale[:6], out[0:2] = MASKED_INPUT_SCALE, 1.0 / MASKED_INPUT_SCALE
+    return Normalisation(fitted.input_mean, scale, out)
 
 
 def renormalise(net: Any, norm: Normalisation) -> None:
