@@ -40,6 +40,9 @@ class ModelSlot:
         # A fleet drone's neighbour input (flight/neighbours.py ``NeighbourFeed``; docs/fleet.md#neighbour-input):
         # a model that takes it is linearised at the neighbour's positions over the horizon. None: none.
         self.neighbour: Any = None
+        # Where the drone above was at the last linearisation's first node (None: not given to the model): the
+        # fast layer re-bases a swap at the positions the flying model saw (flight/adaptation/recent.py).
+        self.last_neighbour: np.ndarray | None = None
 
     @property
     def model(self) -> Linearisable | None:
@@ -47,11 +50,13 @@ class ModelSlot:
 
     def residual(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> ResidualLinearisation | None:
         """The affine residual at the given nodes (N, 6) and (N, 3); None when flying nominal."""
+        self.last_neighbour = None
         if self._model is None:
             return None
         nb = None
         if self.neighbour is not None and getattr(self._model, "takes_neighbour", False):
             nb = self.neighbour.horizon(x_nodes)
+            self.last_neighbour = None if nb is None else nb[0]
         c, jx, ju = self._model.linearise(x_nodes, u_nodes) if nb is None else \
             self._model.linearise(x_nodes, u_nodes, nb)  # type: ignore[call-arg]
         return ResidualLinearisation(c, jx, ju)

@@ -117,7 +117,7 @@ def test_rebase_keeps_model_plus_layer_continuous_and_the_model_takes_over() -> 
     layer = FastAdaptation(settings(), RATE, G)
     wind = np.array([1.0, 0.0, 0.0])
     simulate(layer, 3.0, 1.0, wind, np.zeros(3))  # 0.5 Hz horizontal: settled
-    x, u, old = layer.recent()
+    x, u, old, _ = layer.recent()
     assert x.shape[0] == int(round(layer.s.rebase_window_s * RATE))
     total_before = old + layer.estimate.offset
     new = old + np.array([0.7, 0.0, 0.0])  # the new model explains 0.7 of the 1.0 m/s^2

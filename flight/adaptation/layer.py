@@ -47,6 +47,7 @@ import numpy as np
 from cfknode.flight.adaptation.engagement import Engagement
 from cfknode.flight.adaptation.estimate import AdaptationEstimate, applied_estimate
 from cfknode.flight.adaptation.imu_step import ImuStepDetector
+from cfknode.flight.adaptation.recent import Recent, RecentTicks
 from cfknode.flight.adaptation.observer import (
     L1Gains, axis_transfer, dob_step_floats, l1_step, rebase_offset, shrink, sigma_after_transfer_floats,
     smooth_step_floats, thrust_transfer,
@@ -65,6 +66,7 @@ class LoopExtras(NamedTuple):
     lag: int = 0
     imu_theta: tuple[float, float] | None = None
     accel_part: np.ndarray | None = None
+    neighbour: np.ndarray | None = None
 
 
 _NO_EXTRAS = LoopExtras()
@@ -88,12 +90,7 @@ class FastAdaptation:
         out_hz = np.array([settings.output_bandwidth_xy_hz, settings.output_bandwidth_xy_hz, settings.output_bandwidth_hz])
         self.omega_out = np.where(out_hz > 0.0, 2.0 * math.pi * out_hz, math.inf)  # inf: sigma itself
         self._omega_out_step = np.array([self.omega_out[0], self.omega_out[1], math.inf])
-        n = max(1, int(round(settings.rebase_window_s * rate_hz)))
-        self._buf_x = np.zeros((n, 6))
-        self._buf_u = np.zeros((n, 3))
-        self._buf_a = np.zeros((n, 3))
-        self._buf_len = 0
-        self._buf_i = 0
+        self._recent = RecentTicks(max(1, int(round(settings.rebase_window_s * rate_hz))))
         self.resets = 0
         self.rebases = 0
         self.steps = 0  # vertical steps detected
@@ -123,7 +120,7 @@ class FastAdaptation:
         self._sigma_hat = np.zeros(3)
         self._last_fresh_t = -math.inf
         self._t_prev: float | None = None
-        self._buf_len = self._buf_i = 0
+        self._recent.reset()
         self._frames.reset()
         self.tracker.reset()
         self._omega_z = float(self.omega[2])  # the vertical bandwidth the observer's state is scaled for
@@ -203,7 +200,8 @@ class FastAdaptation:
             if self.s.mode == "dob":
                 self._obs[2] = v_meas[2] - fit[1] / omega[2]
         self._settle(u_applied, u_commanded, thrust_sat, tilt_sat, dt, stepping, omega, fitted_scale)
-        self._remember(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc)
+        self._recent.add(x_meas if x_meas is not None else np.concatenate((np.zeros(3), v_meas)), u_applied, model_acc,
+                         extras.neighbour)
         return self.estimate
 
     def _observe(self, v_meas: np.ndarray, model_acc: np.ndarray, dt: float, stepping: bool) -> np.ndarray:
@@ -432,16 +430,10 @@ class FastAdaptation:
             self._obs = v.copy()
             self._sigma_hat = self._sigma.copy()
 
-    def _remember(self, x: np.ndarray, u: np.ndarray, a: np.ndarray) -> None:
-        i = self._buf_i
-        self._buf_x[i], self._buf_u[i], self._buf_a[i] = x, u, a
-        self._buf_i = (i + 1) % self._buf_x.shape[0]
-        self._buf_len = min(self._buf_len + 1, self._buf_x.shape[0])
-
-    def recent(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The buffered recent ticks: states (n, 6), applied commands (n, 3), the flying model's accelerations (n, 3)."""
-        n = self._buf_len
-        return self._buf_x[:n].copy(), self._buf_u[:n].copy(), self._buf_a[:n].copy()
+    def recent(self) -> Recent:
+        """The buffered recent ticks (recent.py): states, applied commands, the flying model's accelerations, and
+        the neighbour positions it saw."""
+        return self._recent.view()
 
     def rebase(self, new_model_acc: np.ndarray) -> AdaptationEstimate:
         """A model swap: ``new_model_acc`` (n, 3) is the NEW model's acceleration on ``recent()``'s ticks.
@@ -450,13 +442,13 @@ class FastAdaptation:
         explains and the layer keeps only the rest."""
         if not self.s.enabled:
             return self.estimate
-        _, _, old = self.recent()
+        old = self.recent().a
         n = min(old.shape[0], new_model_acc.shape[0])
         new_offset = rebase_offset(self._sigma, old[:n], new_model_acc[:n], self.s.max_offset + 5.0)
         self._shift_observer(new_offset - self._sigma)
         self._sigma = new_offset
-        if n == self._buf_len:  # later re-bases compare against the model now flying
-            self._buf_a[:n] = new_model_acc[:n]
+        if n == len(self._recent):  # later re-bases compare against the model now flying
+            self._recent.set_accelerations(new_model_acc[:n])
         self.estimate = replace(self.estimate, offset=self._published())
         self._engage(0.0)
         self.rebases += 1

@@ -126,7 +126,7 @@ class LoopAdaptation:
         imu = self._imu_theta(now, est) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
-                            accel_part=fast)
+                            accel_part=fast, neighbour=getattr(model, "last_neighbour", None))
         self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)
         if coeffs is not None and self.layer.s.enabled and not self.layer.estimate.frozen:
             e = self.layer.estimate
@@ -272,15 +272,15 @@ class LoopAdaptation:
     def _rebase(self, model: Any) -> None:
         """A swap: the new model's prediction on the recent ticks, the coefficients restarted on it (a = 1,
         its mean there), and the layer's offset re-based so that model + layer is continuous."""
-        x, u, _ = self.layer.recent()
+        x, u, _, nb = self.layer.recent()
         inner = model.model if model is not None else None
         new_acc = u.copy()
         if inner is not None and x.shape[0]:
             if self.coefficients is not None:
-                c, jx, ju = inner.linearise(x, u)
+                c, jx, ju = where_flown(inner.linearise, inner, x, u, nb)
                 r = self.coefficients.features(c, jx, ju, x, u)
             else:
-                r = np.asarray(inner.evaluate(x, u), dtype=float)
+                r = np.asarray(where_flown(inner.evaluate, inner, x, u, nb), dtype=float)
             if r.shape == u.shape and np.all(np.isfinite(r)):
                 if self.coefficients is not None:
                     self.coefficients.restart(r, self._flown(model))
@@ -336,6 +336,23 @@ def accel_tuning(layer: FastAdaptation) -> AccelTuning | None:
                        s.accel_stale_s)
 
 
+def where_flown(method: Any, model: Any, x: np.ndarray, u: np.ndarray, neighbour: np.ndarray) -> Any:
+    """``model.evaluate`` or ``model.linearise`` (``method``) on recent ticks, each at the neighbour position the
+    flying model saw there (NaN rows, or a model without the neighbour input: as ``method(x, u)``)."""
+    known = np.all(np.isfinite(neighbour), axis=1)
+    if not getattr(model, "takes_neighbour", False) or not known.any():
+        return method(x, u)
+    if known.all():
+        return method(x, u, neighbour)
+    out, part = method(x, u), method(x[known], u[known], neighbour[known])
+    if isinstance(out, tuple):
+        for whole, some in zip(out, part):
+            whole[known] = some
+        return out
+    out[known] = part
+    return out
+
+
 def measured_state(est: Any) -> np.ndarray:
     """(position, velocity) in one array. The position is the newest mocap frame's carried to the estimate's time
     with the estimated velocity (the filter's own position lags under a sudden acceleration, which would bias the
@@ -361,4 +378,4 @@ def body_z_floats(q: Any) -> tuple[float, float, float]:
     return 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
-__all__ = ["GROUND_MARGIN", "LoopAdaptation", "body_z", "body_z_floats", "measured_state"]
+__all__ = ["GROUND_MARGIN", "LoopAdaptation", "body_z", "body_z_floats", "measured_state", "where_flown"]
