@@ -1,7 +1,8 @@
 """A fleet drone's networks that see the neighbour alone (``fleet.wake_only``, docs/fleet.md#wake-only): the
 trainer switches the drone's own inputs and the horizontal outputs off, the MPC flies the result as a known
-force at each node, the layer's steps cut no window, and on the crossing the learned wake flies below the fast
-layer alone."""
+force at each node, the layer's steps cut no window, the recorder learns while tracking on what the thrust sent
+did, a swap re-bases the layer where the drone above was, and on the crossing the learned wake flies below the
+fast layer alone."""
 
 from __future__ import annotations
 
@@ -15,7 +16,11 @@ import yaml
 
 from cfknode.app.config import ConfigError, load_config
 from cfknode.app.learning import check_online, learner_settings, trainer_settings
-from cfknode.flight.learning.windows import WindowRecorder
+from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
+from cfknode.flight.adaptation.loop import where_flown
+from cfknode.flight.adaptation.observer import rebase_offset
+from cfknode.flight.adaptation.settings import settings_from_controller
+from cfknode.flight.learning.windows import WakeOnly, WindowRecorder, flown_command
 from cfknode.models.knode import from_torch_queue
 from cfknode.models.modelfile import MASKED_INPUT_SCALE, Normalisation
 from cfknode.models.residual_np import ResidualQueue
@@ -101,20 +106,106 @@ def test_a_network_that_saw_the_own_inputs_is_not_warm_started_into_a_wake_only_
 
 
 def _tick(t: float, stepping: bool, scale: float):
-    est = SimpleNamespace(p=np.array([0.0, 0.0, 1.0]), v=np.zeros(3))
+    est = SimpleNamespace(p=np.array([0.0, 0.0, 1.0]), v=np.zeros(3), q=np.array([1.0, 0.0, 0.0, 0.0]))
     layer = SimpleNamespace(stepping=stepping, thrust_scale=scale, frozen=False)
-    return SimpleNamespace(t=t, est=est, acc=np.zeros(3), source="mpc", model_version=0, compute_s=0.0, layer=layer)
+    return SimpleNamespace(t=t, est=est, acc=np.zeros(3), source="mpc", model_version=0, compute_s=0.0, layer=layer,
+                           setpoint=SimpleNamespace(thrust=40000))
 
 
 def test_the_layers_steps_and_settling_cut_no_window_of_a_wake_only_recorder():
     feed = SimpleNamespace(relative=lambda p: np.array([0.0, 0.0, 0.3]))
-    kept, cut = (WindowRecorder(0.5, 100.0, ground_z=0.0, neighbour=feed, wake_only=w) for w in (True, False))
+    kept, cut = (WindowRecorder(0.5, 100.0, ground_z=0.0, neighbour=feed, wake_only=w) for w in (WakeOnly(9.81, 1e-4), None))
     for k in range(120):  # a pass: the layer alarms and its thrust scale moves by 10 %
         tick = _tick(0.01 * k, stepping=40 <= k < 60, scale=1.0 + 0.1 * k / 120)
         kept.add(tick)
         cut.add(tick)
     assert kept.windows == 2 and kept.unsettled == 0
     assert cut.windows == 0
+
+
+def test_a_wake_only_recorder_records_what_the_thrust_sent_did():
+    """The Mellinger layer sends the layer's thrust scale times the thrust the MPC asked for, along an attitude the
+    attitude loop reaches late. A layer that took a wake's mean for a mass (thrust scale 1.2, the vehicle's own mass
+    nominal) put 0.2 (u + g) into a target recorded against the MPC's command, where there is no wake; recorded as
+    what the thrust sent gives the nominal mass along the measured attitude, the target holds nothing."""
+    cfg = load_config()
+    g, per_cmd = cfg.vehicle.gravity, cfg.vehicle.newton_per_cmd / cfg.vehicle.mass
+    wake_only = WakeOnly(g, per_cmd)
+    feed = SimpleNamespace(relative=lambda p: np.array([0.25, 0.0, 0.2]))  # beside the jet: no wake here
+    wake, plain = (WindowRecorder(0.5, 100.0, ground_z=0.0, neighbour=feed, wake_only=w) for w in (wake_only, None))
+    acc, scale = np.array([0.0, 0.0, -1.5]), 1.2
+    tick = _tick(1.0, stepping=False, scale=scale)
+    tick.acc = acc
+    tick.setpoint = SimpleNamespace(thrust=scale * (acc[2] + g) / per_cmd)  # level: the thrust the layer sends
+    wake.add(tick)
+    plain.add(tick)
+    flown = scale * (acc + [0.0, 0.0, g]) - [0.0, 0.0, g]  # what a vehicle of the nominal mass does
+    assert np.allclose(wake.last_u, flown)
+    assert np.allclose(plain.last_u, acc) and (flown - plain.last_u)[2] == pytest.approx(0.2 * (g - 1.5))
+    # Tilted 10 degrees about y, the thrust's vertical share drops and a horizontal one appears.
+    half = np.radians(10.0) / 2
+    tilted = flown_command(g / per_cmd, np.array([np.cos(half), 0.0, np.sin(half), 0.0]), wake_only)
+    assert tilted[0] == pytest.approx(g * np.sin(2 * half)) and tilted[2] == pytest.approx(g * (np.cos(2 * half) - 1))
+
+
+def _jet(x: np.ndarray, nb: np.ndarray | None) -> np.ndarray:
+    """A wake model's vertical force, 2.8 m/s^2 in a jet 6 cm wide; without a neighbour position: at its stand-in,
+    straight under (the mean of a crossing's training data)."""
+    d = np.tile([0.0, 0.0, 0.2], (x.shape[0], 1)) if nb is None else nb - x[:, 0:3]
+    out = np.zeros((x.shape[0], 3))
+    out[:, 2] = -2.8 * np.exp(-(d[:, 0] ** 2 + d[:, 1] ** 2) / (2 * 0.06**2))
+    return out
+
+
+class _WakeModel:
+    takes_neighbour = True
+
+    def evaluate(self, x, u, nb=None):
+        return _jet(x, nb)
+
+    def linearise(self, x, u, nb=None):
+        return _jet(x, nb), np.zeros((x.shape[0], 3, 6)), np.zeros((x.shape[0], 3, 3))
+
+
+def test_a_swap_rebases_the_layer_where_the_drone_above_was():
+    """The layer's recent ticks keep the neighbour position the flying model saw; a new model is judged there. At
+    its stand-in instead, a wake model predicted the jet's peak on every tick, and the swap moved it into the
+    layer's constant (the offset jumped 0.7 m/s^2 after a pass, and the model monitor dropped the model)."""
+    cfg = load_config(overrides={"controller.adaptation": "dob"})
+    layer = FastAdaptation(settings_from_controller(cfg.controller), 400.0, 9.81)
+    upper = np.array([0.0, 0.0, 1.2])
+    model = _WakeModel()
+    for k in range(200):  # hovering 0.25 m beside the drone above, then half the ticks with no neighbour given
+        x = np.array([0.25, 0.0, 1.0, 0.0, 0.0, 0.0])
+        nb = upper if k < 150 else None
+        a = _jet(x[None], None if nb is None else nb[None])[0]
+        layer.update(k / 400.0, np.zeros(3), x, np.zeros(3), a, (False, False), True, LoopExtras(neighbour=nb))
+    recent = layer.recent()
+    given = np.all(np.isfinite(recent.neighbour), axis=1)
+    assert given.sum() == 50 and np.allclose(recent.neighbour[given], upper)  # the newest 100 ticks (0.25 s)
+    new = where_flown(model.evaluate, model, recent.x, recent.u, recent.neighbour)
+    assert np.allclose(new, recent.a)  # the same model: continuous, no shift
+    assert np.allclose(rebase_offset(np.zeros(3), recent.a, new, 10.0), 0.0)
+    lin = where_flown(model.linearise, model, recent.x, recent.u, recent.neighbour)
+    assert np.allclose(lin[0], recent.a)
+    blind = model.evaluate(recent.x, recent.u)  # the stand-in on every tick: the peak
+    assert rebase_offset(np.zeros(3), recent.a, blind, 10.0)[2] > 1.0
+    plain = SimpleNamespace(takes_neighbour=False)
+    assert np.allclose(where_flown(model.evaluate, plain, recent.x, recent.u, recent.neighbour), blind)
+
+
+def test_a_wake_only_recorder_learns_only_while_tracking():
+    """In a take-off the drone's own climb and the floor change its force while the drone above seems to move with
+    it; a network of the neighbour alone would learn them as wake."""
+    feed = SimpleNamespace(relative=lambda p: np.array([0.0, 0.0, 0.3]))
+    wake, plain = (WindowRecorder(0.5, 100.0, ground_z=0.0, neighbour=feed, wake_only=w) for w in (WakeOnly(9.81, 1e-4), None))
+    for k in range(200):
+        tick = _tick(0.01 * k, stepping=False, scale=1.0)
+        tick.supervisor_state = "TAKEOFF" if k < 100 else "TRACK"
+        wake.add(tick)
+        plain.add(tick)
+    assert plain.windows == 3 and wake.windows == 1  # 0.5 s windows: the 1 s of tracking holds one and a bit
+    assert wake.fresh(0.0)[0][0] >= 1.0
 
 
 def test_wake_only_without_the_neighbour_input_is_refused_in_one_line():
@@ -143,8 +234,9 @@ def test_on_the_crossing_the_learned_wake_flies_below_the_layer_alone(tmp_path):
     from cfknode.app.bench.learning import Job, run_job
     from cfknode.app.bench.learning_cells import CELLS, CROSSING_RADIUS, line_duration
 
-    # Seed 0, 7 passes, lockstep with a fixed latency: the same flights on any machine.
-    cell = next(c for c in CELLS if c.name == "crossing dz=0.3 v=0.5")
+    # Seed 0, 7 passes, lockstep with a fixed latency: the same flights on any machine. 0.2 m under the drone
+    # above, in the wake's strongest part: the cell the layer alone loses most in (pass 7 at 4x pass 1's error).
+    cell = next(c for c in CELLS if c.name == "crossing dz=0.2 v=0.5")
     extra = tuple(_flat(yaml.safe_load(PROFILE.read_text())).items()) + (("safety.estop_dir", str(tmp_path / "e")),)
     duration = line_duration(CROSSING_RADIUS, cell.speed, 7)
     layer, online = (run_job(Job(cell, row, 0, str(tmp_path / row), duration, extra, 0.1))
@@ -152,6 +244,6 @@ def test_on_the_crossing_the_learned_wake_flies_below_the_layer_alone(tmp_path):
     for run in (layer, online):
         assert not run.fell and not run.tripped, run.outcome
     assert online.models_accepted >= 1
-    # Measured: passes 5-7 at 0.53 of the layer's (the first model flies from the 4th pass).
+    # Measured: passes 5-7 at 0.26 of the layer's (the first model flies from the 4th pass), the flight at 0.54.
     late = np.mean(online.passes[-3:]) / np.mean(layer.passes[-3:])
-    assert late < 0.6 and online.mse < 0.9 * layer.mse, (late, online.mse, layer.mse)
+    assert late < 0.4 and online.mse < 0.75 * layer.mse, (late, online.mse, layer.mse)

@@ -114,6 +114,8 @@ def learner_settings(
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
         held_limits=gate_limits(cfg, speed, layer_live=False) if layer else None,
         wake_only=wake_only(cfg),
+        gravity=cfg.vehicle.gravity,
+        per_cmd=cfg.vehicle.newton_per_cmd / cfg.vehicle.mass,
     )
 
 

@@ -46,7 +46,7 @@ from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.gate import GateVerdict
 from cfknode.flight.learning.install import GateRules, TrainerJudging, install_steps
 from cfknode.flight.learning.latency import applied_latency
-from cfknode.flight.learning.windows import TickLike, WindowRecorder
+from cfknode.flight.learning.windows import TickLike, WakeOnly, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_check import SCORE_KEY
@@ -77,9 +77,9 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self.client = client
         self.log = log
         self._wall = wall
-        self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time,
-                                       ground_z=settings.ground_z, min_height=settings.min_height,
-                                       neighbour=getattr(slot, "neighbour", None), wake_only=settings.wake_only)
+        self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time, ground_z=settings.ground_z,
+                                       min_height=settings.min_height, neighbour=getattr(slot, "neighbour", None),
+                                       wake_only=WakeOnly(settings.gravity, settings.per_cmd) if settings.wake_only else None)
         self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)
@@ -422,12 +422,12 @@ class OnlineLearner(LearnerReports, TrainerJudging):
     # --- model monitor -----------------------------------------------------------------------
 
     def _monitor_tick(self, tick: TickLike) -> None:
-        monitor = self.monitor
+        monitor, rec = self.monitor, self.recorder  # the recorder's command: what the networks were trained on
         assert monitor is not None
-        if not self.recorder.last_added:
+        if not rec.last_added:
             monitor.reset()  # the same ticks the windows use: airborne, flown by the MPC
             return
-        if monitor.add(tick.t, tick.est.v, tick.acc, self.recorder.last_nb) and self._flying.model is not None:
+        if monitor.add(tick.t, tick.est.v, rec.last_u, rec.last_nb) and self._flying.model is not None:
             verdict = monitor.judge(self._flying.model)
             if verdict.drop:
                 self._drop(tick.t, f"model {self._flying.version} predicts the last {verdict.ticks} ticks worse than "

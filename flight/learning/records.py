@@ -50,6 +50,10 @@ class LearnerSettings:
     held_limits: GateLimits | None = None
     # The networks see the neighbour alone (fleet.wake_only): the layer's steps and settling do not cut windows.
     wake_only: bool = False
+    # A wake-only recorder's commands (windows.flown_command): m/s^2 of gravity, and per thrust command unit at
+    # the nominal mass (vehicle.newton_per_cmd / vehicle.mass).
+    gravity: float = 9.81
+    per_cmd: float = 0.0
 
 
 @dataclass(frozen=True)

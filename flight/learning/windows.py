@@ -6,11 +6,12 @@ A swap or rollback discards the partial window, so every window was flown under 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
-from cfknode.flight.adaptation.loop import GROUND_MARGIN
+from cfknode.flight.adaptation.loop import GROUND_MARGIN, body_z
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
@@ -24,10 +25,41 @@ ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks
 SETTLING_SPAN = 0.01
 
 
+# The supervisor states a wake-only recorder learns in ("": a loop without a supervisor). In a take-off or a
+# landing the drone's own climb and the floor change its force while the drone above seems to move with them:
+# a stacked pair's first network, fitted on the take-off, flew 1.07-1.31x the layer alone.
+WAKE_STATES = ("", "TRACK")
+
+
+@dataclass(frozen=True)
+class WakeOnly:
+    """A recorder for networks that see the neighbour alone (fleet.wake_only)."""
+
+    gravity: float  # m/s^2 (vehicle.gravity)
+    per_cmd: float  # m/s^2 per unit of the RPYT thrust command at the nominal mass (newton_per_cmd / mass)
+
+
+def flown_command(thrust_cmd: float, q: np.ndarray, wake: WakeOnly) -> np.ndarray:
+    """The acceleration the thrust sent gives a vehicle of the nominal mass along its measured attitude ``q``
+    (w, x, y, z), gravity included: what a wake-only recorder records as the command.
+
+    A network of the neighbour alone learns whatever the command leaves, so the command must hold what the drone
+    itself did. The MPC's command misses two things. The layer's thrust scale s: the Mellinger layer sends s times
+    the thrust asked for, and a layer that took the wake's mean for a mass (s 1.06-1.3 after passes under a drone
+    0.2 m above) left (s - 1)(u + g), 0.5-1.6 m/s^2, where there is no wake; the networks learned it as the jet's
+    far field. And the attitude loop's lag: at a line's end at 1 m/s the tilt lags the command, and the vertical
+    share of the thrust with it; a network learned +4 m/s^2 there, and its swap ended a flight with the
+    separation guard."""
+    a = (thrust_cmd * wake.per_cmd) * body_z(q)
+    a[2] -= wake.gravity
+    return a
+
+
 class TickLike(Protocol):
     t: float
     est: Any
     acc: np.ndarray
+    setpoint: Any  # the AttitudeSetpoint sent: its thrust command is a wake-only recorder's (flown_command)
     source: str
     model_version: int
     compute_s: float
@@ -44,7 +76,7 @@ class WindowRecorder:
 
     def __init__(
         self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None,
-        min_height: float = MIN_HEIGHT, neighbour: Any = None, wake_only: bool = False,
+        min_height: float = MIN_HEIGHT, neighbour: Any = None, wake_only: WakeOnly | None = None,
     ) -> None:
         """``ground_z``: the floor's height; ticks within ``min_height`` of it are not recorded
         (None: no floor rule, for a flight that starts in the air or a plant without ground).
@@ -53,7 +85,8 @@ class WindowRecorder:
         ``wake_only``: the networks see that position alone (fleet.wake_only), so the layer's step alarms and its
         moving thrust scale cut no window: a pass under the drone above is what the layer takes for a step (30 of
         41 windows of a crossing were dropped as unsettled), and a network of the neighbour's position alone cannot
-        hold the layer's mass."""
+        hold the layer's mass. Its commands are what the thrust sent did (``flown_command``), and it learns while
+        the supervisor tracks alone (``WAKE_STATES``). None: not wake-only."""
         self.t_col = t_col
         self.start_time = start_time
         # A longer gap between ticks (flown blind, or by another controller) ends the run; lockstep
@@ -71,7 +104,8 @@ class WindowRecorder:
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
         self._ground = ground_z
-        self._wake_only = wake_only
+        self._wake_only = wake_only is not None
+        self._wake = wake_only
         self._min_height = min_height
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
@@ -91,6 +125,7 @@ class WindowRecorder:
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
             or getattr(tick, "saturated", False)
             or (layer is not None and layer.stepping and not self._wake_only)  # the layer is tracking a step
+            or (self._wake_only and getattr(tick, "supervisor_state", "") not in WAKE_STATES)
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + self._min_height)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
@@ -105,8 +140,8 @@ class WindowRecorder:
         self._t[i] = tick.t
         self._x[i, 0:3] = est.p
         self._x[i, 3:6] = est.v
-        self._u[i] = tick.acc
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
+        self._u[i] = tick.acc if self._wake is None else flown_command(tick.setpoint.thrust, est.q, self._wake)
         # Only the floor's hold: a stale pose also freezes the layer, but for a moment, not where it flies.
         self._held[i] = (layer is not None and layer.frozen and self._ground is not None
                          and est.p[2] <= self._ground + GROUND_MARGIN)
@@ -149,6 +184,11 @@ class WindowRecorder:
         k = int(np.searchsorted(self._t[: self._n], after, side="right"))
         out = (self._t[k : self._n].copy(), self._x[k : self._n].copy(), self._u[k : self._n].copy())
         return out if self._nb is None else (*out, self._nb[k : self._n].copy())
+
+    @property
+    def last_u(self) -> np.ndarray | None:
+        """The newest recorded tick's command as recorded (see ``add``); None: no tick."""
+        return self._u[self._n - 1] if self._n > 0 else None
 
     @property
     def last_nb(self) -> np.ndarray | None:
