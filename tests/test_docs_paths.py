@@ -20,7 +20,9 @@ PAGES = sorted(DOCS.glob("*.md")) + [ROOT / "README.md"]
 # The repository's own top-level folders and files, and the flight log folder: a backticked path
 # under one of them is a claim about this checkout. (README's tree of `cfknode/`, written as
 # `app/`, `ui/`, ..., is relative to that folder and not checked.)
-TOP = frozenset(p.name for p in ROOT.iterdir() if not p.name.startswith(".")) | {"flights"}
+# A bench's output folder (`--out`, ./bench_out by default) is the reader's too: run in a checkout, it must not
+# make the docs' mention of its files a claim about the repository.
+TOP = frozenset(p.name for p in ROOT.iterdir() if not p.name.startswith(".")) - {"bench_out"} | {"flights"}
 
 # Backticked paths that are a user's own files, not files of this repository: what the reader's
 # own flights write (a fresh clone has no flights/ until the first flight).
