@@ -34,6 +34,7 @@ from cfknode.flight.learning.learner import LearnerSettings, OnlineLearner
 from cfknode.flight.learning.gate import GateLimits, operating_envelope
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.flight.learning.trainer_client import TrainerClient
+from cfknode.flight.learning.windows import WakeOnly
 from cfknode.models.trainer_process import TrainerSettings
 
 
@@ -90,7 +91,7 @@ def learner_settings(
     cfg: Config, lockstep: bool, ground_z: float | None = None, speed: float | None = None
 ) -> LearnerSettings:
     """``speed``: the gate's envelope speed (m/s); None takes it from the data."""
-    o, layer = cfg.online, beside_layer(cfg)
+    o, v, layer = cfg.online, cfg.vehicle, beside_layer(cfg)
     return LearnerSettings(
         t_col=o.t_col,
         period=1.0 / cfg.controller.rate_hz,
@@ -113,9 +114,7 @@ def learner_settings(
         min_height=o.min_height,
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
         held_limits=gate_limits(cfg, speed, layer_live=False) if layer else None,
-        wake_only=wake_only(cfg),
-        gravity=cfg.vehicle.gravity,
-        per_cmd=cfg.vehicle.newton_per_cmd / cfg.vehicle.mass,
+        wake_only=WakeOnly(v.gravity, v.newton_per_cmd / v.mass) if wake_only(cfg) else None,
     )
 
 

@@ -46,7 +46,7 @@ from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.gate import GateVerdict
 from cfknode.flight.learning.install import GateRules, TrainerJudging, install_steps
 from cfknode.flight.learning.latency import applied_latency
-from cfknode.flight.learning.windows import TickLike, WakeOnly, WindowRecorder
+from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_check import SCORE_KEY
@@ -79,7 +79,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self._wall = wall
         self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time, ground_z=settings.ground_z,
                                        min_height=settings.min_height, neighbour=getattr(slot, "neighbour", None),
-                                       wake_only=WakeOnly(settings.gravity, settings.per_cmd) if settings.wake_only else None)
+                                       wake_only=settings.wake_only)
         self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)

@@ -8,7 +8,7 @@ from typing import Any, Generator, Protocol
 
 
 from cfknode.flight.learning.monitor import MonitorSettings
-from cfknode.flight.learning.windows import MIN_HEIGHT
+from cfknode.flight.learning.windows import MIN_HEIGHT, WakeOnly
 from cfknode.flight.learning.gate import GateLimits, GateVerdict
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.models.modelfile import ModelFile
@@ -48,12 +48,9 @@ class LearnerSettings:
     # The gate's limits for fresh data the fast layer measured nothing on (held near the floor): there it supplied
     # no constant, so a candidate is judged with its constants, as without a layer (None: ``limits`` always).
     held_limits: GateLimits | None = None
-    # The networks see the neighbour alone (fleet.wake_only): the layer's steps and settling do not cut windows.
-    wake_only: bool = False
-    # A wake-only recorder's commands (windows.flown_command): m/s^2 of gravity, and per thrust command unit at
-    # the nominal mass (vehicle.newton_per_cmd / vehicle.mass).
-    gravity: float = 9.81
-    per_cmd: float = 0.0
+    # The networks see the neighbour alone (fleet.wake_only; windows.WakeOnly: how its recorder reads the thrust
+    # sent). None: they see the drone's own state too.
+    wake_only: WakeOnly | None = None
 
 
 @dataclass(frozen=True)

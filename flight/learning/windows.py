@@ -104,7 +104,6 @@ class WindowRecorder:
         self._w0 = 0  # first tick of the current window in the buffer
         self._version: int | None = None
         self._ground = ground_z
-        self._wake_only = wake_only is not None
         self._wake = wake_only
         self._min_height = min_height
         self.windows = 0  # windows completed
@@ -124,8 +123,8 @@ class WindowRecorder:
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
             or getattr(tick, "saturated", False)
-            or (layer is not None and layer.stepping and not self._wake_only)  # the layer is tracking a step
-            or (self._wake_only and getattr(tick, "supervisor_state", "") not in WAKE_STATES)
+            or (layer is not None and layer.stepping and self._wake is None)  # the layer is tracking a step
+            or (self._wake is not None and getattr(tick, "supervisor_state", "") not in WAKE_STATES)
             or tick.t < self.start_time
             or (self._ground is not None and est.p[2] <= self._ground + self._min_height)
             or (self._n > 0 and tick.t - self._t[self._n - 1] > self._max_gap)
@@ -157,7 +156,7 @@ class WindowRecorder:
             return None
         w0, self._w0 = self._w0, self._n
         scale = self._s[w0 : self._n]
-        if not self._wake_only and float(scale.max() - scale.min()) > SETTLING_SPAN * float(scale.min()):
+        if self._wake is None and float(scale.max() - scale.min()) > SETTLING_SPAN * float(scale.min()):
             self.unsettled += 1
             return None
         self.windows += 1
