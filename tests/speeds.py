@@ -130,6 +130,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_library_log_records_are_held_back_unless_verbose": FAST,
         "test_more_bad_input_is_one_line_and_exit_2": FAST,
     },
+    "test_command_lag.py": FAST,
     "test_config.py": FAST,
     "test_config_bounds.py": FAST,
     "test_config_declarations.py": FAST,

@@ -143,13 +143,13 @@ def test_recorder_does_not_train_on_the_fast_layer_s_transient() -> None:
 
 
 def test_recorder_fresh_data_and_long_runs() -> None:
-    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, keep_s=1.0, ground_z=0.0)
-    for k in range(2000):  # 5 s: the buffer compacts several times
+    rec = WindowRecorder(t_col=0.25, rate_hz=RATE, ground_z=0.0)
+    for k in range(8000):  # 20 s: the buffer (windows.KEEP_S) compacts several times
         rec.add(tick(k / RATE))
-    t, x, u = rec.fresh(4.9)
-    assert t[0] > 4.9 and t[-1] == pytest.approx(1999 / RATE)
+    t, x, u = rec.fresh(19.9)
+    assert t[0] > 19.9 and t[-1] == pytest.approx(7999 / RATE)
     assert x.shape == (t.size, 6) and np.all(np.diff(t) > 0)
-    assert rec.windows == 2000 // 101  # 101 ticks per 0.25 s window
+    assert rec.windows == 8000 // 101  # 101 ticks per 0.25 s window
 
 
 # --- one-step prediction and gate ---------------------------------------------------------------

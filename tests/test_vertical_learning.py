@@ -28,6 +28,8 @@ def test_the_learning_profile_is_a_valid_config_that_changes_only_learning_besid
     # Unbounded: the climb-rate term learned on the take-off's climb is flown on the faster oscillation.
     assert not cfg.online.layer_input_bounds
     assert cfg.online.gate_layer_min_pairs == 400 and cfg.online.layer_weight_decay == 0.01
+    # Targets against the command as it acts: through the motors' lag, the plant's own.
+    assert cfg.online.command_lag_s == (0.0, cfg.vehicle.motor_time_constant)
     assert cfg.controller == default.controller and cfg.training == default.training  # nothing else moves
     assert {k.split(".")[0] for k, _ in profile_overrides()} == {"online"}
 

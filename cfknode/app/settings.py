@@ -95,6 +95,8 @@ class OnlineConfig:
     latency_quantum_s: float = setting(unit="s", low=0, high=1, doc="latency: cpu")
     min_height: float = setting(unit="m", low=0, high=2,
         doc="ticks closer than this to the floor are not learned from (lower it to learn ground effect)")
+    command_lag_s: tuple[float, float] = setting(unit="s", low=0, high=0.5,
+        doc="(x/y, z) lags the commands act through (attitude loop, motors): learning targets use the lagged command")
     inject: FaultInjection
 
 

@@ -79,7 +79,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         self._wall = wall
         self.recorder = WindowRecorder(settings.t_col, 1.0 / settings.period, settings.start_time, ground_z=settings.ground_z,
                                        min_height=settings.min_height, neighbour=getattr(slot, "neighbour", None),
-                                       wake_only=settings.wake_only)
+                                       wake_only=settings.wake_only, command_lag_s=settings.command_lag_s)
         self.monitor = ModelMonitor(settings.monitor, 1.0 / settings.period) if settings.monitor is not None else None
         n0 = len(base.networks) if base is not None else 0
         self._flying = _Flying(slot.model, slot.version, base, (slot.version,) * n0)

@@ -51,6 +51,7 @@ class LearnerSettings:
     # The networks see the neighbour alone (fleet.wake_only; windows.WakeOnly: how its recorder reads the thrust
     # sent). None: they see the drone's own state too.
     wake_only: WakeOnly | None = None
+    command_lag_s: tuple[float, float] = (0.0, 0.0)  # (x/y, z) s: the lags the recorded commands act through
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cfknode.flight.adaptation.loop import GROUND_MARGIN, body_z
+from cfknode.flight.learning.command_lag import CommandLag
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
@@ -23,6 +24,7 @@ ELIGIBLE_SOURCES = ("mpc",)  # ticks the MPC flew with the model; fallback ticks
 # not the model's error: a network trained on it holds part of the mass the layer is still learning, and the two
 # then share it (thrust map -15 %: the mass stalled at 1.06 of nominal instead of 1.18, 5x the layer's MSE).
 SETTLING_SPAN = 0.01
+KEEP_S = 4.0  # s of ticks kept (at least three windows): the gate's fresh data and the monitor's window come from them
 
 
 # The supervisor states a wake-only recorder learns in ("": a loop without a supervisor). In a take-off or a
@@ -70,13 +72,14 @@ class WindowRecorder:
 
     A *run* is the newest contiguous stretch of eligible ticks under one model; anything else
     (on the ground, a fallback tick, another model version, ``reset``) ends it and discards the
-    partial window. Storage is preallocated (``keep_s`` of ticks); adding a tick is a few
+    partial window. Storage is preallocated (``KEEP_S`` of ticks, or three windows); adding a tick is a few
     array stores.
     """
 
     def __init__(
-        self, t_col: float, rate_hz: float, start_time: float = 0.0, keep_s: float = 4.0, ground_z: float | None = None,
+        self, t_col: float, rate_hz: float, start_time: float = 0.0, ground_z: float | None = None,
         min_height: float = MIN_HEIGHT, neighbour: Any = None, wake_only: WakeOnly | None = None,
+        command_lag_s: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         """``ground_z``: the floor's height; ticks within ``min_height`` of it are not recorded
         (None: no floor rule, for a flight that starts in the air or a plant without ground).
@@ -86,13 +89,15 @@ class WindowRecorder:
         moving thrust scale cut no window: a pass under the drone above is what the layer takes for a step (30 of
         41 windows of a crossing were dropped as unsettled), and a network of the neighbour's position alone cannot
         hold the layer's mass. Its commands are what the thrust sent did (``flown_command``), and it learns while
-        the supervisor tracks alone (``WAKE_STATES``). None: not wake-only."""
+        the supervisor tracks alone (``WAKE_STATES``). None: not wake-only.
+        ``command_lag_s``: (x/y, z) lags the commands act through (``CommandLag``); the recorded command is the
+        lagged one. (0, 0): as sent."""
         self.t_col = t_col
         self.start_time = start_time
         # A longer gap between ticks (flown blind, or by another controller) ends the run; lockstep
         # ticks land on the plant's 2 ms grid, so neighbours can be up to two plant steps apart.
         self._max_gap = 3.0 / rate_hz
-        cap = int(math.ceil(max(keep_s, 3.0 * t_col) * rate_hz)) + 8
+        cap = int(math.ceil(max(KEEP_S, 3.0 * t_col) * rate_hz)) + 8
         self._t = np.empty(cap)
         self._x = np.empty((cap, 6))
         self._u = np.empty((cap, 3))
@@ -105,6 +110,7 @@ class WindowRecorder:
         self._version: int | None = None
         self._ground = ground_z
         self._wake = wake_only
+        self._lag = CommandLag(command_lag_s, self._max_gap) if any(x > 0.0 for x in command_lag_s) else None
         self._min_height = min_height
         self.windows = 0  # windows completed
         self.discarded = 0  # partial windows thrown away (swap, rollback, run broken)
@@ -119,6 +125,9 @@ class WindowRecorder:
         if est is None:
             self._break()
             return None
+        u = tick.acc if self._wake is None else flown_command(tick.setpoint.thrust, est.q, self._wake)
+        if self._lag is not None:  # every tick's command goes through the lag, recorded or not: the motors lag them all
+            u = self._lag(tick.t, u)
         if (
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
@@ -140,7 +149,7 @@ class WindowRecorder:
         self._x[i, 0:3] = est.p
         self._x[i, 3:6] = est.v
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
-        self._u[i] = tick.acc if self._wake is None else flown_command(tick.setpoint.thrust, est.q, self._wake)
+        self._u[i] = u
         # Only the floor's hold: a stale pose also freezes the layer, but for a moment, not where it flies.
         self._held[i] = (layer is not None and layer.frozen and self._ground is not None
                          and est.p[2] <= self._ground + GROUND_MARGIN)

@@ -1,0 +1,92 @@
+"""The learner's commands as they act: through the motors' and the attitude loop's lags (flight/learning/command_lag.py).
+
+Measured against the command as sent, the motors' lag is a force on the command's rate; on a vertical oscillation
+that rate follows the velocity, and it hid the thrust lost with climb rate from every network."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cfknode.app.config import load_config
+from cfknode.app.learning import learner_settings
+from cfknode.flight.learning.command_lag import CommandLag
+from cfknode.flight.learning.windows import WindowRecorder
+
+RATE = 400.0
+
+
+def test_each_axis_follows_its_own_first_order_lag():
+    lag = CommandLag((0.05, 0.015), max_gap=3.0 / RATE)
+    step = np.array([1.0, -2.0, 3.0])
+    lag(0.0, np.zeros(3))
+    for k in range(1, 7):  # 15 ms: one vertical time constant
+        out = lag(k / RATE, step)
+    assert out[2] == pytest.approx(3.0 * (1.0 - math.exp(-1.0)), rel=1e-9)
+    assert out[0] == pytest.approx(1.0 * (1.0 - math.exp(-0.015 / 0.05)), rel=1e-9)
+    assert out[1] == pytest.approx(-2.0 * (1.0 - math.exp(-0.015 / 0.05)), rel=1e-9)
+
+
+def test_a_zero_lag_passes_the_command_and_a_gap_restarts_the_lag():
+    lag = CommandLag((0.0, 0.015), max_gap=3.0 / RATE)
+    lag(0.0, np.zeros(3))
+    out = lag(1.0 / RATE, np.array([2.0, 2.0, 2.0]))
+    assert out[0] == out[1] == 2.0 and 0.0 < out[2] < 2.0
+    # A gap (flown blind, or on the ground) holds no memory of what the motors did before it.
+    assert np.array_equal(lag(1.0, np.array([5.0, 5.0, 5.0])), [5.0, 5.0, 5.0])
+
+
+def _tick(t: float, acc: np.ndarray, z: float = 1.0, v: np.ndarray | None = None):
+    est = SimpleNamespace(p=np.array([0.0, 0.0, z]), v=np.zeros(3) if v is None else v, q=np.array([1.0, 0.0, 0.0, 0.0]))
+    return SimpleNamespace(t=t, est=est, acc=acc, source="mpc", model_version=0, compute_s=0.0, layer=None)
+
+
+def test_the_recorder_records_the_lagged_command_and_lags_the_ticks_it_does_not_record():
+    lagged = WindowRecorder(0.5, RATE, ground_z=0.0, command_lag_s=(0.0, 0.015))
+    sent = WindowRecorder(0.5, RATE, ground_z=0.0)
+    step = np.array([0.0, 0.0, 4.0])
+    # The first 20 ticks are below the floor margin: not recorded, but the motors lagged them all the same.
+    for k in range(40):
+        tick = _tick(k / RATE, step if k >= 10 else np.zeros(3), z=0.05 if k < 20 else 1.0)
+        lagged.add(tick)
+        sent.add(tick)
+    assert np.array_equal(sent.last_u, step)
+    assert lagged.last_u[2] == pytest.approx(4.0 * (1.0 - math.exp(-30 / (RATE * 0.015))), rel=1e-9)
+    _, _, u = lagged.fresh(0.0)
+    assert u[0, 2] == pytest.approx(4.0 * (1.0 - math.exp(-11 / (RATE * 0.015))), rel=1e-9)  # the first recorded tick
+
+
+def test_against_the_lagged_command_a_vertical_oscillation_shows_the_thrust_lost_with_climb_rate():
+    """A vehicle whose motors lag 15 ms and which loses 0.4 m/s^2 of thrust per m/s of climb, commanded along a
+    0.65 Hz, 0.25 m oscillation: the command's rate follows the velocity, so against the command as sent the
+    target's slope on v_z is mostly the motors' lag; against the lagged command it is the inflow's."""
+    tau, k_in, w, dt = 0.015, -0.4, 2.0 * math.pi * 0.65, 1.0 / RATE
+    recorders = {lag: WindowRecorder(10.0, RATE, ground_z=0.0, command_lag_s=(0.0, lag)) for lag in (0.0, tau)}
+    acting, v, rows = 0.0, 0.0, []
+    for k in range(int(4.0 * RATE)):
+        t = k * dt
+        u = -0.25 * w * w * math.sin(w * t) + k_in * 0.25 * w * math.cos(w * t)  # the command a tracker would send
+        tick = _tick(t, np.array([0.0, 0.0, u]), v=np.array([0.0, 0.0, v]))
+        for rec in recorders.values():
+            rec.add(tick)
+        acting += (1.0 - math.exp(-dt / tau)) * (u - acting)
+        a = acting + k_in * v
+        rows.append((v, a))
+        v += a * dt
+    vz, a = np.array(rows).T
+    slopes = {}
+    for lag, rec in recorders.items():
+        _, _, u = rec.fresh(-1.0)
+        target = a[-u.shape[0]:] - u[:, 2]
+        slopes[lag] = np.polyfit(vz[-u.shape[0]:], target, 1)[0]
+    assert slopes[tau] == pytest.approx(k_in, abs=0.02)
+    assert slopes[0.0] > k_in + 0.15  # the motors' lag (tau w^2 = +0.25) hides most of it
+
+
+def test_the_setting_reaches_the_learner_and_is_off_by_default():
+    assert learner_settings(load_config(), lockstep=True).command_lag_s == (0.0, 0.0)
+    cfg = load_config(overrides={"online.command_lag_s": [0.0, 0.015]})
+    assert learner_settings(cfg, lockstep=True).command_lag_s == (0.0, 0.015)
