@@ -314,6 +314,36 @@ def test_gate_rejects_implausible_dynamics_anywhere_in_the_envelope() -> None:
     assert not verdict.accepted and "exceeds knode.max_residual" in verdict.reason
 
 
+def test_beside_the_layer_a_vertical_force_from_horizontal_speed_is_refused_and_the_climb_rate_term_is_not() -> None:
+    """A take-off network's r_z fell 0.15-0.38 m/s^2 per m/s of horizontal speed; on the slow circle it doubled the
+    vertical error. The thrust lost with climb rate (dr_z/dv_z) and drag along the velocity are on the diagonal."""
+    t, x, u = flown_data(np.zeros(3))
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    bounded = replace(limits(max_residual=1e3), max_velocity_coupling=0.1)
+    inflow_and_drag = np.diag([-0.25, -0.25, -0.4])
+    spurious = inflow_and_drag.copy()
+    spurious[2, 0] = -0.3
+    for gain_v, ok in ((inflow_and_drag, True), (spurious, False)):
+        mf = linear_residual_model(gain_v, np.zeros((3, 3)))
+        model = ResidualQueue.from_model_file(mf)
+        verdict = run_gate(mf, model, None, fresh, x, u, bounded)
+        assert verdict.velocity_coupling == pytest.approx(abs(gain_v[2, 0]), abs=1e-3)
+        assert ("velocity coupling" in verdict.reason) == (not ok), verdict.reason
+        # Without the bound (the defaults) the coupling is reported and not judged.
+        assert "velocity coupling" not in run_gate(mf, model, None, fresh, x, u, limits(max_residual=1e3)).reason
+
+
+def test_the_velocity_coupling_bound_acts_beside_the_layer_only() -> None:
+    from cfknode.app.config import load_config
+    from cfknode.app.learning import gate_limits
+
+    assert gate_limits(load_config()).max_velocity_coupling == math.inf  # null by default
+    over = {"online.gate_layer_velocity_coupling": 0.1}
+    assert gate_limits(load_config(overrides=over)).max_velocity_coupling == 0.1
+    alone = load_config(overrides={**over, "controller.adaptation": "none"})
+    assert gate_limits(alone).max_velocity_coupling == math.inf
+
+
 def test_beside_the_layer_a_horizontal_effectiveness_far_from_one_is_refused_and_a_thrust_slope_is_not() -> None:
     import dataclasses
 

@@ -59,6 +59,8 @@ class OnlineConfig:
             "it flies on those axes only")
     gate_layer_horizontal_gain: tuple[float, float] = setting(low=0, high=100, open_low=True,
         doc="beside a fast layer: eigenvalues of sym(I + dr/du) over the horizontal commands (the layer has the mass)")
+    gate_layer_velocity_coupling: float | None = setting(unit="1/s", low=0, high=100,
+        doc="beside a fast layer: largest |dr_i/dv_j|, i != j (a vertical force from horizontal speed); null: any")
     gate_layer_min_pairs: int = setting(low=2, high=100000,
         doc="beside a fast layer: gate_min_pairs")
     layer_replay_windows: int = setting(low=0, high=40,

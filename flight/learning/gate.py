@@ -139,6 +139,7 @@ class GateVerdict:
     control_gain: tuple[float, float] = (math.nan, math.nan)  # extreme eigenvalues of sym(I + dr/du)
     velocity_gain: float = math.nan  # largest eigenvalue of sym(dr/dv), 1/s
     cross_gain: float = math.nan  # largest |off-diagonal| of dr/du
+    velocity_coupling: float = math.nan  # largest |off-diagonal| of dr/dv, 1/s
     tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
     score: tuple[float, ...] = ()  # beside the layer: per axis, the share of what it leaves the candidate removes
 
@@ -195,6 +196,10 @@ class GateLimits:
     # the eigenvalues of sym(I + dr/du) over the horizontal commands. A model fitted while the attitude loop lagged
     # a ramp's commands learned 0.36 there, and the MPC then commanded 3x the tilt (a 10 cm error over the floor).
     horizontal_gain: tuple[float, float] = (0.0, math.inf)
+    # Beside the fast layer: the largest |dr_i/dv_j|, i != j (1/s). A level quadrotor's drag acts along its own
+    # velocity and its thrust loss along its climb; networks fitted on a take-off learned a vertical force from the
+    # horizontal velocity (-0.15 to -0.38 per m/s), and on the slow circle it doubled the vertical error.
+    max_velocity_coupling: float = math.inf
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -299,10 +304,11 @@ def run_gate(
 
 
 def _jacobian_extremes(candidate: Any, xs: np.ndarray, us: np.ndarray
-                       ) -> Generator[None, None, tuple[float, float, float, float, float, float] | None]:
+                       ) -> Generator[None, None, tuple[float, ...] | None]:
     """Over the points, one slice per ``JACOBIAN_CHUNK``: the extreme eigenvalues of sym(I + dr/du) and of its
-    horizontal block, the largest of sym(dr/dv), and the largest |dr_i/du_j|, i != j. None: a non-finite one."""
-    g_lo, g_hi, h_lo, h_hi, vgain, cross = math.inf, -math.inf, math.inf, -math.inf, -math.inf, 0.0
+    horizontal block, the largest of sym(dr/dv), the largest |dr_i/du_j| and |dr_i/dv_j|, i != j. None: a
+    non-finite one."""
+    g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross = math.inf, -math.inf, math.inf, -math.inf, -math.inf, 0.0, 0.0
     off = ~np.eye(3, dtype=bool)
     for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
         _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
@@ -316,8 +322,9 @@ def _jacobian_extremes(candidate: Any, xs: np.ndarray, us: np.ndarray
         jv = jx[:, :, 3:6]
         vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
         cross = max(cross, float(np.abs(ju[:, off]).max()))
+        vcross = max(vcross, float(np.abs(jv[:, off]).max()))
         yield
-    return g_lo, g_hi, h_lo, h_hi, vgain, cross
+    return g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross
 
 
 def gate_steps(
@@ -351,7 +358,7 @@ def gate_steps(
     extremes = yield from _jacobian_extremes(candidate, xs[sel], us[sel])
     if extremes is None:
         return GateVerdict(False, "non-finite Jacobian", nan, nan, nan, peak, n)
-    g_lo, g_hi, h_lo, h_hi, vgain, cross = extremes
+    g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross = extremes
     cf, k = limits.constant_free, limits.steps
     e_cand = rollout_rmse(candidate, fresh, k, cf)
     yield
@@ -364,8 +371,8 @@ def gate_steps(
         score = tuple(float(v) for v in beyond_layer(candidate, current, fresh, limits.layer_hz))
 
     def verdict(reason: str) -> GateVerdict:
-        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, climb,
-                           score)
+        return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, vcross,
+                           climb, score)
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
@@ -376,6 +383,9 @@ def gate_steps(
         return verdict(f"velocity feedback {vgain:.2f} 1/s above {limits.max_velocity_gain:g} (phantom instability)")
     if cross > limits.max_cross_gain:
         return verdict(f"cross-coupling |dr_i/du_j| {cross:.2f} above {limits.max_cross_gain:g}")
+    if vcross > limits.max_velocity_coupling:
+        return verdict(f"velocity coupling |dr_i/dv_j| {vcross:.2f} 1/s above {limits.max_velocity_coupling:g} "
+                       "beside the fast layer")
     if n == 0 or not math.isfinite(e_cand):
         return verdict("no held-out data to judge it on")
     what = ("without constants, " if cf else "") + (f"over {k} steps, " if k > 1 else "")

@@ -169,6 +169,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "control_gain": _vec(2, "extreme eigenvalues of sym(I + dr/du) on the envelope"),
          "velocity_gain": _num("largest eigenvalue of sym(dr/dv) on the envelope, 1/s"),
          "cross_gain": _num("largest |off-diagonal| of dr/du on the envelope"),
+         "velocity_coupling": _num("largest |off-diagonal| of dr/dv on the envelope, 1/s"),
          "tilt_climb": _num("largest climb from tilting either way at the input box's top, m/s^2"),
          "train_wall_s": _num("trainer wall time of the round, s"),
          "latency_s": _num("wall time from sending the window to the result, s"),
