@@ -13,7 +13,7 @@ import pytest
 
 from cfknode.app.config import load_config
 from cfknode.app.learning import learner_settings
-from cfknode.flight.learning.command_lag import CommandLag
+from cfknode.flight.learning.command_lag import CommandLag, lagged_commands
 from cfknode.flight.learning.windows import WindowRecorder
 
 RATE = 400.0
@@ -90,3 +90,38 @@ def test_the_setting_reaches_the_learner_and_is_off_by_default():
     assert learner_settings(load_config(), lockstep=True).command_lag_s == (0.0, 0.0)
     cfg = load_config(overrides={"online.command_lag_s": [0.0, 0.015]})
     assert learner_settings(cfg, lockstep=True).command_lag_s == (0.0, 0.015)
+
+
+def test_offline_segments_are_lagged_as_the_recorder_lags_them_and_the_neighbour_columns_are_kept():
+    rng = np.random.default_rng(0)
+    t = np.arange(200) / RATE
+    u = np.concatenate((rng.normal(size=(200, 3)), np.tile([0.1, 0.0, 0.3], (200, 1))), axis=1)  # + a neighbour
+    out = lagged_commands(t, u, (0.02, 0.015))
+    rec = WindowRecorder(10.0, RATE, ground_z=0.0, command_lag_s=(0.02, 0.015))
+    for i in range(200):
+        rec.add(_tick(float(t[i]), u[i, :3]))
+    _, _, recorded = rec.fresh(-1.0)
+    assert np.array_equal(out[:, :3], recorded)
+    assert np.array_equal(out[:, 3:], u[:, 3:])
+    assert np.array_equal(lagged_commands(t, u, (0.0, 0.0)), u)
+
+
+def test_cfknode_train_reads_its_segments_through_the_training_lag(monkeypatch):
+    import argparse
+
+    import cfknode.app.logs.training_data as training_data
+    from cfknode.app.commands.data_args import read_segments
+    from cfknode.models.training import Segment
+
+    t = np.arange(100) / RATE
+    u = np.zeros((100, 3))
+    u[10:, 2] = 2.0  # a step the motors follow over 15 ms
+    seg = Segment(t, np.zeros((100, 6)), u, "flight.mcap")
+    monkeypatch.setattr(training_data, "segments_from_logs", lambda paths, on_damage: [seg])
+    args = argparse.Namespace(log=["flight.mcap"], data=[], columns=None, thrust_coefficient=None, align="auto",
+                              every=1, robot=None)
+    plain, _ = read_segments(args, load_config())
+    assert np.array_equal(plain[0].u, u)
+    lagged, _ = read_segments(args, load_config(overrides={"training.command_lag_s": [0.0, 0.015]}))
+    assert np.array_equal(lagged[0].u, lagged_commands(t, u, (0.0, 0.015)))
+    assert 0.0 < lagged[0].u[11, 2] < 1.0 and lagged[0].u[-1, 2] == pytest.approx(2.0, abs=1e-6)

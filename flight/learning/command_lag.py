@@ -47,4 +47,18 @@ class CommandLag:
         return np.array(y)
 
 
-__all__ = ["CommandLag"]
+def lagged_commands(t: np.ndarray, u: np.ndarray, lag_s: tuple[float, float]) -> np.ndarray:
+    """A recorded run's commands (``u``'s first three columns; any others, such as a neighbour's position, are
+    kept) as they acted, by ``CommandLag``: what offline training measures its targets against, as the
+    recorder does in flight. A gap of three sample periods restarts the lag."""
+    out = np.array(u, dtype=float)
+    if out.shape[0] == 0 or not any(x > 0.0 for x in lag_s):
+        return out
+    dt = np.diff(t)
+    lag = CommandLag(lag_s, 3.0 * float(np.median(dt)) if dt.size else math.inf)
+    for i in range(out.shape[0]):
+        out[i, :3] = lag(float(t[i]), out[i, :3])
+    return out
+
+
+__all__ = ["CommandLag", "lagged_commands"]

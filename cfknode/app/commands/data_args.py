@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 from typing import TYPE_CHECKING
 
@@ -65,6 +66,10 @@ def read_segments(args: argparse.Namespace, cfg: Config,
         say(prep.line())
         segments.extend(found)
         preps.append(prep)
+    if any(x > 0.0 for x in cfg.training.command_lag_s):
+        from cfknode.flight.learning.command_lag import lagged_commands
+
+        segments = [replace(s, u=lagged_commands(s.t, s.u, cfg.training.command_lag_s)) for s in segments]
     return segments, preps
 
 
