@@ -26,9 +26,6 @@ class CommandLag:
         self._dt = math.nan  # the last step's dt, and its factors (ticks come at one rate: computed once per rate)
         self._alpha = (1.0, 1.0, 1.0)
 
-    def reset(self) -> None:
-        self._t = None
-
     def __call__(self, t: float, u: np.ndarray) -> np.ndarray:
         """The command ``u`` (m/s^2) sent at ``t`` (s), as it acts: the lagged command after this tick."""
         y = self._y

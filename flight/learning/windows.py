@@ -125,9 +125,9 @@ class WindowRecorder:
         if est is None:
             self._break()
             return None
-        u = tick.acc if self._wake is None else flown_command(tick.setpoint.thrust, est.q, self._wake)
-        if self._lag is not None:  # every tick's command goes through the lag, recorded or not: the motors lag them all
-            u = self._lag(tick.t, u)
+        # Every tick's command goes through the lag, recorded or not (the motors lag them all); without a lag the
+        # command is read only for the ticks recorded.
+        u = self._lag(tick.t, self._command(tick)) if self._lag is not None else None
         if (
             tick.source not in ELIGIBLE_SOURCES
             # A tick cut by the thrust clamp or the tilt limit is the limit's motion, not the model's: never trained on.
@@ -149,7 +149,7 @@ class WindowRecorder:
         self._x[i, 0:3] = est.p
         self._x[i, 3:6] = est.v
         self._s[i] = layer.thrust_scale if layer is not None else 1.0
-        self._u[i] = u
+        self._u[i] = u if u is not None else self._command(tick)
         # Only the floor's hold: a stale pose also freezes the layer, but for a moment, not where it flies.
         self._held[i] = (layer is not None and layer.frozen and self._ground is not None
                          and est.p[2] <= self._ground + GROUND_MARGIN)
@@ -172,6 +172,10 @@ class WindowRecorder:
         nb = self._nb[w0 : self._n].copy() if self._nb is not None else None
         return Window(self.windows, self._t[w0 : self._n].copy(), self._x[w0 : self._n].copy(),
                       self._u[w0 : self._n].copy(), tick.model_version, nb)
+
+    def _command(self, tick: TickLike) -> np.ndarray:
+        """The tick's command as this recorder reads it: the MPC's, or for a wake-only one what the thrust sent did."""
+        return tick.acc if self._wake is None else flown_command(tick.setpoint.thrust, tick.est.q, self._wake)
 
     def reset(self) -> None:
         """A model change: the partial window (flown under the old model) is discarded."""
