@@ -4,6 +4,7 @@ part of what the layer leaves (the score `cfknode model check` reports), or it i
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from cfknode.flight.learning.gate import beyond_layer, gate_pairs, run_gate
 from cfknode.models.residual_np import ResidualQueue
@@ -89,3 +90,22 @@ def test_a_minimum_score_refuses_a_candidate_that_removes_too_little_of_what_the
     assert not verdict.accepted and "explains nothing beyond the fast layer" in verdict.reason
     mf, whole = slope_model(-0.6)
     assert run_gate(mf, whole, None, fresh, x[:400], u[:400], strict).accepted
+
+
+def test_a_vertical_force_growing_with_climb_rate_does_not_fly_and_the_horizontal_term_beside_it_does():
+    import dataclasses
+
+    lenient = dataclasses.replace(limits(), constant_free=True, min_improvement=-1000.0, min_gain=-np.inf,
+                                  layer_hz=LAYER_HZ, max_climb_feedback=0.1)
+    t, x, u = manoeuvre(-0.6, seed=4)
+    fresh = gate_pairs(t[400:], x[400:], u[400:], 8.0)
+    # The drag that is there, and the motors' lag read as a vertical slope (+0.25 per m/s of climb).
+    mf = linear_residual_model(np.diag([-0.6, 0.0, 0.25]), np.zeros((3, 3)))
+    verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x[:400], u[:400], lenient)
+    assert verdict.accepted, verdict.reason
+    assert verdict.climb_feedback == pytest.approx(0.25, abs=1e-3)
+    assert verdict.score[0] > 0.5 and verdict.score[2] <= 0.0  # flown on x, not on z
+    # Only the vertical slope: nothing left to fly, refused for the slope.
+    mf = linear_residual_model(np.diag([0.0, 0.0, 0.25]), np.zeros((3, 3)))
+    verdict = run_gate(mf, ResidualQueue.from_model_file(mf), None, fresh, x[:400], u[:400], lenient)
+    assert not verdict.accepted and "growing with climb rate" in verdict.reason

@@ -333,7 +333,24 @@ def test_beside_the_layer_a_vertical_force_from_horizontal_speed_is_refused_and_
         assert "velocity coupling" not in run_gate(mf, model, None, fresh, x, u, limits(max_residual=1e3)).reason
 
 
-def test_the_velocity_coupling_bound_acts_beside_the_layer_only() -> None:
+def test_beside_the_layer_a_vertical_force_growing_with_climb_rate_is_refused_and_the_inflow_is_not() -> None:
+    """The motors' lag left in the targets reads as +tau w^2 v_z on an oscillation: a network fitted under a 150 ms
+    lag learned dr_z/dv_z = +0.24. The air's inflow is negative, and a horizontal slope (the attitude loop's lag,
+    learned at a line's turn-arounds) is not this bound's."""
+    t, x, u = flown_data(np.zeros(3))
+    fresh = gate_pairs(t, x, u, filter_hz=8.0)
+    bounded = replace(limits(max_residual=1e3), max_climb_feedback=0.1)
+    for diagonal, ok in (((-0.25, -0.25, -0.4), True), ((0.3, 0.0, -0.4), True), ((0.0, 0.0, 0.24), False)):
+        mf = linear_residual_model(np.diag(diagonal), np.zeros((3, 3)))
+        model = ResidualQueue.from_model_file(mf)
+        verdict = run_gate(mf, model, None, fresh, x, u, bounded)
+        assert verdict.climb_feedback == pytest.approx(diagonal[2], abs=1e-3)
+        assert ("growing with climb rate" in verdict.reason) == (not ok), verdict.reason
+        # Without the bound (the defaults) the slope is reported and not judged.
+        assert "climb rate" not in run_gate(mf, model, None, fresh, x, u, limits(max_residual=1e3)).reason
+
+
+def test_the_velocity_bounds_act_beside_the_layer_only() -> None:
     from cfknode.app.config import load_config
     from cfknode.app.learning import gate_limits
 
@@ -342,6 +359,11 @@ def test_the_velocity_coupling_bound_acts_beside_the_layer_only() -> None:
     assert gate_limits(load_config(overrides=over)).max_velocity_coupling == 0.1
     alone = load_config(overrides={**over, "controller.adaptation": "none"})
     assert gate_limits(alone).max_velocity_coupling == math.inf
+    assert gate_limits(load_config()).max_climb_feedback == math.inf
+    climb = {"online.gate_layer_climb_feedback": 0.1}
+    assert gate_limits(load_config(overrides=climb)).max_climb_feedback == 0.1
+    alone = load_config(overrides={**climb, "controller.adaptation": "none"})
+    assert gate_limits(alone).max_climb_feedback == math.inf
 
 
 def test_beside_the_layer_a_horizontal_effectiveness_far_from_one_is_refused_and_a_thrust_slope_is_not() -> None:

@@ -61,6 +61,9 @@ class OnlineConfig:
         doc="beside a fast layer: eigenvalues of sym(I + dr/du) over the horizontal commands (the layer has the mass)")
     gate_layer_velocity_coupling: float | None = setting(unit="1/s", low=0, high=100,
         doc="beside a fast layer: largest |dr_i/dv_j|, i != j (a vertical force from horizontal speed); null: any")
+    gate_layer_climb_feedback: float | None = setting(unit="1/s", low=0, high=100,
+        doc="beside a fast layer: largest dr_z/dv_z (the air only takes thrust away with climb; a positive slope "
+            "is the motors' lag left in the targets); null: any")
     gate_layer_min_pairs: int = setting(low=2, high=100000,
         doc="beside a fast layer: gate_min_pairs")
     layer_replay_windows: int = setting(low=0, high=40,

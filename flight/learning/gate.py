@@ -142,6 +142,7 @@ class GateVerdict:
     velocity_coupling: float = math.nan  # largest |off-diagonal| of dr/dv, 1/s
     tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
     score: tuple[float, ...] = ()  # beside the layer: per axis, the share of what it leaves the candidate removes
+    climb_feedback: float = math.nan  # largest dr_z/dv_z, 1/s
 
 
 @dataclass(frozen=True)
@@ -200,6 +201,10 @@ class GateLimits:
     # velocity and its thrust loss along its climb; networks fitted on a take-off learned a vertical force from the
     # horizontal velocity (-0.15 to -0.38 per m/s), and on the slow circle it doubled the vertical error.
     max_velocity_coupling: float = math.inf
+    # Beside the fast layer: the largest dr_z/dv_z (1/s). The air only takes thrust away with climb (-0.4 per m/s);
+    # a vertical force growing with climb rate is the motors' lag left in the targets (+tau w^2 on an oscillation).
+    # A network fitted under a 150 ms motor lag learned +0.24, and flown into the thrust limit it lost 20 cm sideways.
+    max_climb_feedback: float = math.inf
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -306,9 +311,10 @@ def run_gate(
 def _jacobian_extremes(candidate: Any, xs: np.ndarray, us: np.ndarray
                        ) -> Generator[None, None, tuple[float, ...] | None]:
     """Over the points, one slice per ``JACOBIAN_CHUNK``: the extreme eigenvalues of sym(I + dr/du) and of its
-    horizontal block, the largest of sym(dr/dv), the largest |dr_i/du_j| and |dr_i/dv_j|, i != j. None: a
-    non-finite one."""
+    horizontal block, the largest of sym(dr/dv), the largest |dr_i/du_j| and |dr_i/dv_j|, i != j, and the largest
+    dr_z/dv_z. None: a non-finite one."""
     g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross = math.inf, -math.inf, math.inf, -math.inf, -math.inf, 0.0, 0.0
+    climb = -math.inf
     off = ~np.eye(3, dtype=bool)
     for i in range(0, xs.shape[0], JACOBIAN_CHUNK):
         _, jx, ju = candidate.linearise(xs[i : i + JACOBIAN_CHUNK], us[i : i + JACOBIAN_CHUNK])
@@ -323,8 +329,9 @@ def _jacobian_extremes(candidate: Any, xs: np.ndarray, us: np.ndarray
         vgain = max(vgain, float(np.linalg.eigvalsh(0.5 * (jv + jv.transpose(0, 2, 1))).max()))
         cross = max(cross, float(np.abs(ju[:, off]).max()))
         vcross = max(vcross, float(np.abs(jv[:, off]).max()))
+        climb = max(climb, float(jv[:, 2, 2].max()))
         yield
-    return g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross
+    return g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross, climb
 
 
 def gate_steps(
@@ -358,7 +365,7 @@ def gate_steps(
     extremes = yield from _jacobian_extremes(candidate, xs[sel], us[sel])
     if extremes is None:
         return GateVerdict(False, "non-finite Jacobian", nan, nan, nan, peak, n)
-    g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross = extremes
+    g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross, climb_fb = extremes
     cf, k = limits.constant_free, limits.steps
     e_cand = rollout_rmse(candidate, fresh, k, cf)
     yield
@@ -372,7 +379,7 @@ def gate_steps(
 
     def verdict(reason: str) -> GateVerdict:
         return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, vcross,
-                           climb, score)
+                           climb, score, climb_fb)
 
     if g_lo < lo or g_hi > hi:
         return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
@@ -386,6 +393,12 @@ def gate_steps(
     if vcross > limits.max_velocity_coupling:
         return verdict(f"velocity coupling |dr_i/dv_j| {vcross:.2f} 1/s above {limits.max_velocity_coupling:g} "
                        "beside the fast layer")
+    if climb_fb > limits.max_climb_feedback:
+        # Its vertical output does not fly; what it earned horizontally may (the score decides the axes flown).
+        if not score or not max(score[:2]) > limits.min_score:
+            return verdict(f"vertical force growing with climb rate, dr_z/dv_z {climb_fb:.2f} 1/s above "
+                           f"{limits.max_climb_feedback:g} beside the fast layer (the motors' lag, not the air)")
+        score = (score[0], score[1], min(score[2], 0.0))
     if n == 0 or not math.isfinite(e_cand):
         return verdict("no held-out data to judge it on")
     what = ("without constants, " if cf else "") + (f"over {k} steps, " if k > 1 else "")

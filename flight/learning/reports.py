@@ -52,7 +52,8 @@ class LearnerReports:
                        val_error_nominal=verdict.rmse_nominal, max_residual=verdict.max_residual,
                        val_pairs=verdict.pairs, control_gain=list(verdict.control_gain),
                        velocity_gain=verdict.velocity_gain, cross_gain=verdict.cross_gain,
-                       velocity_coupling=verdict.velocity_coupling, tilt_climb=verdict.tilt_climb, score=list(verdict.score))
+                       velocity_coupling=verdict.velocity_coupling,
+                       climb_feedback=verdict.climb_feedback, tilt_climb=verdict.tilt_climb, score=list(verdict.score))
         for key, seconds in (("swap_ms", times.swap_s), ("install_ms", times.install_s), ("slice_ms", times.slice_s)):
             if math.isfinite(seconds):
                 msg[key] = 1e3 * seconds

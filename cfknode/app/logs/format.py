@@ -170,6 +170,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
          "velocity_gain": _num("largest eigenvalue of sym(dr/dv) on the envelope, 1/s"),
          "cross_gain": _num("largest |off-diagonal| of dr/du on the envelope"),
          "velocity_coupling": _num("largest |off-diagonal| of dr/dv on the envelope, 1/s"),
+         "climb_feedback": _num("largest dr_z/dv_z on the envelope, 1/s"),
          "tilt_climb": _num("largest climb from tilting either way at the input box's top, m/s^2"),
          "train_wall_s": _num("trainer wall time of the round, s"),
          "latency_s": _num("wall time from sending the window to the result, s"),
