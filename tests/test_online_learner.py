@@ -300,3 +300,45 @@ def test_beside_the_layer_an_accepted_model_flies_only_on_the_axes_it_earned() -
     assert np.allclose(slot.model.beyond_layer, np.where(score > 0.02, score, 0.0))
     assert flown_axes(slot.model.beyond_layer, 0.0) == (True, False, False)
     assert learner.recent_models[-1][1].extra[SCORE_KEY] == swap["score"]
+
+
+def test_beside_the_layer_an_axis_the_flying_model_stops_earning_on_stops_flying() -> None:
+    from test_gate_transfer import LAYER_HZ
+    from test_online_gate import linear_residual_model
+
+    from cfknode.models.residual_check import flown_axes
+
+    # Drag in x and y; the candidate has both, and every later round brings it back (rejected: no better than itself).
+    candidate = linear_residual_model(np.diag([-3.0, -3.0, 0.0]), np.zeros((3, 3)))
+    runs = {}
+    for rejudge in (False, True):
+        flight, learner, trainer, log, slot = make(lambda req: outcome_with(candidate, req))
+        flight.drag = np.array([-3.0, -3.0, 0.0])
+        lenient = replace(learner.s.limits, constant_free=True, steps=5, layer_hz=LAYER_HZ, min_score=0.02,
+                          rejudge=rejudge)
+        learner.s = replace(learner.s, limits=lenient)
+        learner._rules = replace(learner._rules, limits=lenient)
+        flight.run(0.8)
+        assert slot.version == 1 and flown_axes(slot.model.beyond_layer, 0.0) == (True, True, False)
+        flight.drag = np.array([-3.0, 0.0, 0.0])  # y's drag is gone: the model's y term now makes y worse
+        flight.run(3.0)
+        runs[rejudge] = (log.topic("/model"), slot)
+    events, slot = runs[False]
+    assert not [m for m in events if m["event"] == "narrow"] and slot.version == 1  # off by default
+    events, slot = runs[True]
+    narrow = [m for m in events if m["event"] == "narrow"]
+    assert len(narrow) == 1 and "stopped earning on y" in narrow[0]["reason"], [m.get("reason") for m in events]
+    # The same networks fly on under a new version, on x alone (what still earns); the other axes' scores are 0.
+    assert slot.version == narrow[0]["version"] > 1
+    assert flown_axes(slot.model.beyond_layer, 0.0) == (True, False, False)
+    assert slot.model.beyond_layer[0] > 0.02
+
+
+def test_the_flying_model_keeps_an_axis_while_its_score_since_the_swap_is_above_the_bar() -> None:
+    from cfknode.flight.learning.rejudge import retired_axes
+
+    flown = np.array([0.3, 0.1, 0.2])
+    # Horizontally the gate's bar (0.05 here), vertically any positive share (the inflow's damping scores little).
+    assert np.array_equal(retired_axes(flown, np.array([0.06, 0.04, 0.01]), 0.05), [0.3, 0.0, 0.2])
+    assert np.array_equal(retired_axes(flown, np.array([-0.2, 0.5, 0.0]), 0.05), [0.0, 0.1, 0.0])
+    assert np.array_equal(retired_axes(np.zeros(3), np.ones(3), 0.05), np.zeros(3))  # an axis not flown stays so

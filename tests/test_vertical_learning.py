@@ -34,6 +34,7 @@ def test_the_learning_profile_is_a_valid_config_that_changes_only_learning_besid
     assert cfg.online.command_lag_s == (0.0, cfg.vehicle.motor_time_constant)
     assert cfg.online.gate_layer_velocity_coupling == 0.1  # no vertical force from horizontal speed
     assert cfg.online.gate_layer_climb_feedback == 0.1  # nor one growing with climb rate where the layer measures
+    assert cfg.online.gate_layer_rejudge  # an axis the flying network stops earning on stops flying
     assert cfg.online.gate_layer_min_score == 0.05  # flown on the axes where it removes 5 % of the layer's rest
     assert cfg.controller == default.controller and cfg.training == default.training  # nothing else moves
     assert {k.split(".")[0] for k, _ in profile_overrides()} == {"online"}

@@ -142,7 +142,8 @@ def gate_limits(cfg: Config, speed: float | None = None, layer_live: bool = True
                       layer_hz=_layer_hz(cfg) if layer else None, min_score=o.gate_layer_min_score if layer else 0.0,
                       horizontal_gain=o.gate_layer_horizontal_gain if beside else (0.0, math.inf),
                       max_velocity_coupling=_or_inf(o.gate_layer_velocity_coupling) if beside else math.inf,
-                      max_climb_feedback=_or_inf(o.gate_layer_climb_feedback) if layer else math.inf)
+                      max_climb_feedback=_or_inf(o.gate_layer_climb_feedback) if layer else math.inf,
+                      rejudge=o.gate_layer_rejudge and layer)
 
 
 def _or_inf(limit: float | None) -> float:

@@ -61,9 +61,10 @@ class OnlineConfig:
         doc="beside a fast layer: eigenvalues of sym(I + dr/du) over the horizontal commands (the layer has the mass)")
     gate_layer_velocity_coupling: float | None = setting(unit="1/s", low=0, high=100,
         doc="beside a fast layer: largest |dr_i/dv_j|, i != j (a vertical force from horizontal speed); null: any")
+    gate_layer_rejudge: bool = setting(
+        doc="beside a fast layer: score the flying model on later rounds' fresh data; stop flying axes it stops earning on")
     gate_layer_climb_feedback: float | None = setting(unit="1/s", low=0, high=100,
-        doc="beside a fast layer: largest dr_z/dv_z (the air only takes thrust away with climb; a positive slope "
-            "is the motors' lag left in the targets); null: any")
+        doc="beside a fast layer: largest dr_z/dv_z (a force growing with climb rate is the motors' lag); null: any")
     gate_layer_min_pairs: int = setting(low=2, high=100000,
         doc="beside a fast layer: gate_min_pairs")
     layer_replay_windows: int = setting(low=0, high=40,

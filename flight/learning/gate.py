@@ -19,7 +19,7 @@ import numpy as np
 from scipy.signal import butter, filtfilt
 
 from cfknode.models.modelfile import ModelFile
-from cfknode.models.residual_check import shares
+from cfknode.models.residual_check import beyond_layer_sums, shares
 from cfknode.models.residual_np import ResidualQueue
 
 # Same rules as offline training data (cfknode.models.training, which imports torch):
@@ -143,6 +143,9 @@ class GateVerdict:
     tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
     score: tuple[float, ...] = ()  # beside the layer: per axis, the share of what it leaves the candidate removes
     climb_feedback: float = math.nan  # largest dr_z/dv_z, 1/s
+    # ``rejudge``: the flying model's ``beyond_layer_sums`` on the same fresh data, per axis (what the layer leaves
+    # without it, and with it); empty when not judged.
+    flying_sums: tuple[tuple[float, ...], tuple[float, ...]] | tuple[()] = ()
 
 
 @dataclass(frozen=True)
@@ -205,6 +208,9 @@ class GateLimits:
     # a vertical force growing with climb rate is the motors' lag left in the targets (+tau w^2 on an oscillation).
     # A network fitted under a 150 ms motor lag learned +0.24, and flown into the thrust limit it lost 20 cm sideways.
     max_climb_feedback: float = math.inf
+    # Beside the fast layer: also score the flying model on every candidate's fresh data, which was flown under it,
+    # so that the learner can stop flying the axes it no longer earns on (``flight/learning/rejudge.py``).
+    rejudge: bool = False
 
 
 def envelope_for(limits: GateLimits, recent_x: np.ndarray) -> np.ndarray:
@@ -372,27 +378,22 @@ def gate_steps(
     e_cur = rollout_rmse(current, fresh, k, cf)
     yield
     e_nom = e_cur if current is None else rollout_rmse(None, fresh, k, cf)
-    lo, hi = limits.control_gain
     score = ()
+    flying: tuple[tuple[float, ...], tuple[float, ...]] | tuple[()] = ()
     if limits.layer_hz is not None and n > 0:  # reported with every verdict from here on
         score = tuple(float(v) for v in beyond_layer(candidate, current, fresh, limits.layer_hz))
+        if limits.rejudge and current is not None and not getattr(current, "is_zero", True):
+            yield
+            left, both = flying_sums(current, fresh, limits.layer_hz)
+            flying = (tuple(float(v) for v in left), tuple(float(v) for v in both))
 
     def verdict(reason: str) -> GateVerdict:
         return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, vcross,
-                           climb, score, climb_fb)
+                           climb, score, climb_fb, flying)
 
-    if g_lo < lo or g_hi > hi:
-        return verdict(f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}")
-    if h_lo < limits.horizontal_gain[0] or h_hi > limits.horizontal_gain[1]:
-        return verdict(f"horizontal control effectiveness {h_lo:.2f}..{h_hi:.2f} outside "
-                       f"{limits.horizontal_gain[0]:g}..{limits.horizontal_gain[1]:g} beside the fast layer")
-    if vgain > limits.max_velocity_gain:
-        return verdict(f"velocity feedback {vgain:.2f} 1/s above {limits.max_velocity_gain:g} (phantom instability)")
-    if cross > limits.max_cross_gain:
-        return verdict(f"cross-coupling |dr_i/du_j| {cross:.2f} above {limits.max_cross_gain:g}")
-    if vcross > limits.max_velocity_coupling:
-        return verdict(f"velocity coupling |dr_i/dv_j| {vcross:.2f} 1/s above {limits.max_velocity_coupling:g} "
-                       "beside the fast layer")
+    implausible = _implausible(limits, extremes)
+    if implausible:
+        return verdict(implausible)
     if climb_fb > limits.max_climb_feedback:
         # Its vertical output does not fly; what it earned horizontally may (the score decides the axes flown).
         if not score or not max(score[:2]) > limits.min_score:
@@ -416,20 +417,52 @@ def gate_steps(
     return verdict("")
 
 
+def _implausible(limits: GateLimits, extremes: tuple[float, ...]) -> str:
+    """Why the Jacobians' extremes (``_jacobian_extremes``) are not a vehicle's, or ""."""
+    g_lo, g_hi, h_lo, h_hi, vgain, cross, vcross, _ = extremes
+    lo, hi = limits.control_gain
+    if g_lo < lo or g_hi > hi:
+        return f"control effectiveness {g_lo:.2f}..{g_hi:.2f} outside {lo:g}..{hi:g}"
+    if h_lo < limits.horizontal_gain[0] or h_hi > limits.horizontal_gain[1]:
+        return (f"horizontal control effectiveness {h_lo:.2f}..{h_hi:.2f} outside "
+                f"{limits.horizontal_gain[0]:g}..{limits.horizontal_gain[1]:g} beside the fast layer")
+    if vgain > limits.max_velocity_gain:
+        return f"velocity feedback {vgain:.2f} 1/s above {limits.max_velocity_gain:g} (phantom instability)"
+    if cross > limits.max_cross_gain:
+        return f"cross-coupling |dr_i/du_j| {cross:.2f} above {limits.max_cross_gain:g}"
+    if vcross > limits.max_velocity_coupling:
+        return (f"velocity coupling |dr_i/dv_j| {vcross:.2f} 1/s above {limits.max_velocity_coupling:g} "
+                "beside the fast layer")
+    return ""
+
+
 def beyond_layer(candidate: Any, current: Any | None, pairs: GatePairs,
                  layer_hz: tuple[tuple[float, float], tuple[float, float]]) -> np.ndarray:
     """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
     candidate (in its place) and the layer remove together: ``residual_check.shares(...).beyond_layer``."""
-    x0 = pairs.x0
-    flying = _evaluate(current, x0, pairs.u, pairs.nb) if current is not None else 0.0
-    r = (pairs.x1[:, 3:6] - x0[:, 3:6]) / pairs.dt[:, None] - pairs.u - flying
+    flying = _evaluate(current, pairs.x0, pairs.u, pairs.nb) if current is not None else 0.0
+    t, r = _pair_residual(pairs)
+    return shares(t, r - flying, _evaluate(candidate, pairs.x0, pairs.u, pairs.nb) - flying, *layer_hz).beyond_layer
+
+
+def flying_sums(current: Any, pairs: GatePairs, layer_hz: tuple[tuple[float, float], tuple[float, float]]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis, what the layer leaves on ``pairs`` without the flying model and with it
+    (``residual_check.beyond_layer_sums``): its score there, in parts that add up over rounds."""
+    t, r = _pair_residual(pairs)
+    return beyond_layer_sums(t, r, _evaluate(current, pairs.x0, pairs.u, pairs.nb), *layer_hz)
+
+
+def _pair_residual(pairs: GatePairs) -> tuple[np.ndarray, np.ndarray]:
+    """Each pair's time from the first, and its measured minus commanded acceleration."""
     t = np.concatenate(([0.0], np.cumsum(pairs.dt[:-1])))
-    return shares(t, r, _evaluate(candidate, x0, pairs.u, pairs.nb) - flying, *layer_hz).beyond_layer
+    return t, (pairs.x1[:, 3:6] - pairs.x0[:, 3:6]) / pairs.dt[:, None] - pairs.u
 
 
 __all__ = [
     "GateLimits",
     "beyond_layer",
+    "flying_sums",
     "GatePairs",
     "GateVerdict",
     "gate_pairs",

@@ -21,7 +21,7 @@ import numpy as np
 from cfknode.flight.learning.gate import GateLimits, GateVerdict, gate_pairs, gate_steps
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_np import ResidualQueue
-from cfknode.models.trainer_process import Job, JobOutcome, Window
+from cfknode.models.trainer_process import Job, JobOutcome, TrainOutcome, Window
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,13 @@ class GateRules:
 
 # (t, x, u) recorded after the training window, and the neighbour's relative position when recorded
 Fresh = tuple[np.ndarray, ...]
+
+
+def held_out_tail(out: TrainOutcome, window: Window) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The part of the training window the trainer held out (samples from its last training sample on): the
+    paper's gate data, where no fresh data exists."""
+    k = int(np.searchsorted(window.t, out.train_t1 - 1e-9))
+    return window.t[k:], window.x[k:], window.u[k:]
 
 
 def install_steps(candidate_file: ModelFile, current: Any | None, window: Window, fresh: Fresh,
@@ -160,4 +167,4 @@ def judged_remotely(client: Any, current: Any | None) -> bool:
     return bool(getattr(client, "runs_jobs", False)) and (current is None or type(current) is ResidualQueue)
 
 
-__all__ = ["Fresh", "GateRules", "TrainerJudging", "gate_job", "install_steps", "judged_remotely"]
+__all__ = ["Fresh", "GateRules", "TrainerJudging", "gate_job", "held_out_tail", "install_steps", "judged_remotely"]

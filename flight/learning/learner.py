@@ -26,9 +26,8 @@ That is the ``wall`` latency policy. With ``cpu`` or ``fixed`` (``latency.py``) 
 delay comes from the trainer's report instead and the flight is never paced: a result counts
 as received at exactly send time + delay in flight time, and the loop blocks on the trainer
 only when flight time reaches the earliest moment the result could apply. The flight then
-depends only on the trainer's outputs, not on how loaded the machine is.
-``paper_lockstep`` instead waits for every model and applies it at once, as the paper's code
-does (reproduction only).
+depends only on the trainer's outputs, not on how loaded the machine is. ``paper_lockstep``
+instead waits for every model and applies it at once, as the paper's code does (reproduction only).
 """
 
 from __future__ import annotations
@@ -44,8 +43,9 @@ import numpy as np
 from cfknode.flight.learning.monitor import ModelMonitor
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.learning.gate import GateVerdict
-from cfknode.flight.learning.install import GateRules, TrainerJudging, install_steps
+from cfknode.flight.learning.install import GateRules, TrainerJudging, held_out_tail, install_steps
 from cfknode.flight.learning.latency import applied_latency
+from cfknode.flight.learning.rejudge import FlyingRejudge
 from cfknode.flight.learning.windows import TickLike, WindowRecorder
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
@@ -60,7 +60,7 @@ from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the ap
 from cfknode.flight.learning.reports import LearnerReports, SwapTimes
 
 
-class OnlineLearner(LearnerReports, TrainerJudging):
+class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
     """The flight side of online learning: a ``TickObserver`` (see the module docstring)."""
 
     def __init__(
@@ -310,7 +310,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
         start = self._wall()
         if self.s.paper_lockstep:
             # No fresh data exists (the paper applies at once): judge on the window's held-out tail.
-            fresh = _tail(out, held.window)
+            fresh = held_out_tail(out, held.window)
         else:
             fresh = self.recorder.fresh(out.window_t1)
         assert out.model is not None
@@ -348,6 +348,7 @@ class OnlineLearner(LearnerReports, TrainerJudging):
             return
         if not verdict.accepted:
             self._reject(t, held, verdict.reason, verdict)
+            self._rejudge(t, verdict)
             return
         candidate, candidate_file = g.candidate, out.model
         assert candidate_file is not None and candidate is not None
@@ -434,18 +435,23 @@ class OnlineLearner(LearnerReports, TrainerJudging):
                            f"nominal ({verdict.error_model:.2f} vs {verdict.error_nominal:.2f} m/s^2 mean acceleration error)")
 
     def _drop(self, t: float, reason: str) -> None:
-        """Fly nominal from the next tick: the flying model explains the newest motion worse than no model, or the
-        fall guard caught a lost thrust the model was fitted without."""
+        """Fly nominal: the flying model explains the newest motion worse than none, or the fall guard caught a
+        lost thrust the model was fitted without."""
+        self.stats.drops += 1
+        self._replace_flying(t, None, None, (), "drop", reason)
+        self._log_event(t, "warning", f"online: {reason}; flying nominal until the next accepted model")
+
+    def _replace_flying(self, t: float, model: Any, file: ModelFile | None, queue: tuple[int, ...], event: str,
+                        reason: str) -> None:
+        """Fly ``model`` (None: nominal) from the next tick, a new version: what is trained on the old is stale."""
         version, self._next_version = self._next_version, self._next_version + 1
-        record = self.slot.swap(None, version, t)
-        self._flying = _Flying(None, version, None, ())
+        record = self.slot.swap(model, version, t)
+        self._flying = _Flying(model, version, file, queue)
         self._model_changed()
         self._watch = None
-        self._discard_pending_candidates(t, "dropped")
-        self.stats.drops += 1
-        self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, "drop"))
-        self._log_model(t, version, "drop", reason, times=SwapTimes(record.swap_s))
-        self._log_event(t, "warning", f"online: {reason}; flying nominal until the next accepted model")
+        self._discard_pending_candidates(t, {"drop": "dropped", "narrow": "narrowed"}.get(event, event))
+        self.swaps.append(SwapEvent(t, version, record.swap_s, record.swap_s, record.swap_s, event))
+        self._log_model(t, version, event, reason, times=SwapTimes(record.swap_s))
 
     # --- paper lockstep ----------------------------------------------------------------------
 
@@ -469,12 +475,6 @@ class OnlineLearner(LearnerReports, TrainerJudging):
             self._start_gate(t)
         while self._gating is not None:  # the simulation waits anyway: the whole gate at once
             self._step_gate(t)
-
-
-def _tail(out: TrainOutcome, window: Window) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The part of the training window the trainer held out (samples from its last training sample on)."""
-    k = int(np.searchsorted(window.t, out.train_t1 - 1e-9))
-    return window.t[k:], window.x[k:], window.u[k:]
 
 
 __all__ = ["LearnerSettings", "OnlineLearner", "OnlineStats", "RoundRecord", "SwapEvent"]

@@ -81,7 +81,7 @@ class SwapEvent:
     swap_s: float  # the slot write (a reference assignment)
     install_s: float  # fold the file into numpy stacks + gate + swap, spread over tick gaps
     max_slice_s: float  # the longest of those slices: what one tick gap had to absorb
-    kind: str  # "swap" | "rollback" | "drop"
+    kind: str  # "swap" | "rollback" | "drop" | "narrow"
 
 
 @dataclass
