@@ -154,9 +154,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
     ),
     ChannelSpec(
         "/model", "cfknode.Model",
-        "KNODE model events: a network swapped in, rejected by the gate, rolled back, dropped for nominal by the monitor; trainer crash or restart.",
+        "KNODE model events: a network swapped in, rejected by the gate, rolled back, dropped for nominal by the monitor, narrowed to the axes it still earns on; trainer crash or restart.",
         {"version": _num("model version the event is about (0 = nominal)"),
-         "event": _str("swap, reject, rollback, drop, crash or restart")},
+         "event": _str("swap, reject, rollback, drop, narrow, crash or restart")},
         {"reason": _str("why it was rejected or rolled back, or what failed"), "loss": _num("training loss"),
          "val_error": _num("validation error (online: candidate's one-step velocity RMSE on fresh data, m/s)"),
          "swap_ms": _num("time to write the solver parameters, ms"),
