@@ -5,9 +5,9 @@ one second of fresh data. One second is little evidence: on the slow circle a ne
 scored about 0 on the seconds that followed, and flew z 12 % worse than the layer alone. With
 ``online.gate_layer_rejudge`` every later candidate's fresh data (flown under the flying model) also scores the
 flying model (``gate.flying_sums``); the sums add up from its swap on. Once ``REJUDGE_ROUNDS`` seconds are in, an
-axis whose share of what the layer leaves is no longer above ``online.gate_layer_min_score`` stops flying: the
-learner flies the same networks on the axes left (a new version, so nothing trained on the old one is mixed in),
-or nominal when none is left.
+axis whose share of what the layer leaves is too low (``retired_axes``) stops flying: the learner flies the same
+networks on the axes left (a new version, so nothing trained on the old one is mixed in), or nominal when none is
+left.
 """
 
 from __future__ import annotations
