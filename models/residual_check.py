@@ -84,7 +84,9 @@ class AxisShares:
 def shares(t: np.ndarray, r: np.ndarray, model_r: np.ndarray, bandwidth_hz: tuple[float, float],
            output_hz: tuple[float, float]) -> AxisShares:
     """The per-axis table ``cfknode model check`` prints, for residual ``r`` and a model's ``model_r``."""
-    layer_left, rest, both_left = _left_by_layer(t, r, model_r, bandwidth_hz, output_hz)
+    layer_left = r - layer_estimate(t, r, bandwidth_hz, output_hz)
+    rest = r - model_r
+    both_left = rest - layer_estimate(t, rest, bandwidth_hz, output_hz)
     return AxisShares(
         rms=np.sqrt(np.mean(r**2, axis=0)),
         constant=explained(r, r - r.mean(axis=0)),
@@ -92,22 +94,6 @@ def shares(t: np.ndarray, r: np.ndarray, model_r: np.ndarray, bandwidth_hz: tupl
         model=explained(r, rest),
         beyond_layer=explained(layer_left, both_left),
     )
-
-
-def beyond_layer_sums(t: np.ndarray, r: np.ndarray, model_r: np.ndarray, bandwidth_hz: tuple[float, float],
-                      output_hz: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Per axis, the sums of squares the layer leaves of ``r`` and of ``r - model_r``: ``beyond_layer``'s two
-    terms, to add up over several stretches of data (the share is 1 - second / first)."""
-    layer_left, _, both_left = _left_by_layer(t, r, model_r, bandwidth_hz, output_hz)
-    return np.sum(layer_left**2, axis=0), np.sum(both_left**2, axis=0)
-
-
-def _left_by_layer(t: np.ndarray, r: np.ndarray, model_r: np.ndarray, bandwidth_hz: tuple[float, float],
-                   output_hz: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What the layer leaves of ``r``; ``r`` less the model's; what the layer leaves of that."""
-    rest = r - model_r
-    return (r - layer_estimate(t, r, bandwidth_hz, output_hz), rest,
-            rest - layer_estimate(t, rest, bandwidth_hz, output_hz))
 
 
 def open_loop_errors(t: np.ndarray, x: np.ndarray, u: np.ndarray, horizons_s: tuple[float, ...],

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.signal import butter, filtfilt
 
 from cfknode.models.modelfile import ModelFile
-from cfknode.models.residual_check import beyond_layer_sums, shares
+from cfknode.models.residual_check import explained, layer_estimate
 from cfknode.models.residual_np import ResidualQueue
 
 # Same rules as offline training data (cfknode.models.training, which imports torch):
@@ -143,8 +143,8 @@ class GateVerdict:
     tilt_climb: float = math.nan  # m/s^2, largest climb gained by tilting either way at the box's top (``tilt_climb``)
     score: tuple[float, ...] = ()  # beside the layer: per axis, the share of what it leaves the candidate removes
     climb_feedback: float = math.nan  # largest dr_z/dv_z, 1/s
-    # ``rejudge``: the flying model's ``beyond_layer_sums`` on the same fresh data, per axis (what the layer leaves
-    # without it, and with it); empty when not judged.
+    # ``rejudge``: the flying model's score on the same fresh data in parts, per axis (``layer_scores``); empty when
+    # not judged.
     flying_sums: tuple[tuple[float, ...], tuple[float, ...]] | tuple[()] = ()
 
 
@@ -381,11 +381,12 @@ def gate_steps(
     score = ()
     flying: tuple[tuple[float, ...], tuple[float, ...]] | tuple[()] = ()
     if limits.layer_hz is not None and n > 0:  # reported with every verdict from here on
-        score = tuple(float(v) for v in beyond_layer(candidate, current, fresh, limits.layer_hz))
-        if limits.rejudge and current is not None and not getattr(current, "is_zero", True):
-            yield
-            left, both = flying_sums(current, fresh, limits.layer_hz)
-            flying = (tuple(float(v) for v in left), tuple(float(v) for v in both))
+        flying_too = limits.rejudge and current is not None and not getattr(current, "is_zero", True)
+        judged, sums = layer_scores(candidate, current, fresh, limits.layer_hz, flying_too)
+        score = tuple(float(v) for v in judged)
+        if sums is not None:
+            yield  # the flying model's parts make this slice a third longer: a tick gap before the rest
+            flying = (tuple(float(v) for v in sums[0]), tuple(float(v) for v in sums[1]))
 
     def verdict(reason: str) -> GateVerdict:
         return GateVerdict(reason == "", reason, e_cand, e_cur, e_nom, peak, n, (g_lo, g_hi), vgain, cross, vcross,
@@ -440,29 +441,32 @@ def beyond_layer(candidate: Any, current: Any | None, pairs: GatePairs,
                  layer_hz: tuple[tuple[float, float], tuple[float, float]]) -> np.ndarray:
     """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
     candidate (in its place) and the layer remove together: ``residual_check.shares(...).beyond_layer``."""
-    flying = _evaluate(current, pairs.x0, pairs.u, pairs.nb) if current is not None else 0.0
-    t, r = _pair_residual(pairs)
-    return shares(t, r - flying, _evaluate(candidate, pairs.x0, pairs.u, pairs.nb) - flying, *layer_hz).beyond_layer
+    return layer_scores(candidate, current, pairs, layer_hz)[0]
 
 
-def flying_sums(current: Any, pairs: GatePairs, layer_hz: tuple[tuple[float, float], tuple[float, float]]
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Per axis, what the layer leaves on ``pairs`` without the flying model and with it
-    (``residual_check.beyond_layer_sums``): its score there, in parts that add up over rounds."""
-    t, r = _pair_residual(pairs)
-    return beyond_layer_sums(t, r, _evaluate(current, pairs.x0, pairs.u, pairs.nb), *layer_hz)
-
-
-def _pair_residual(pairs: GatePairs) -> tuple[np.ndarray, np.ndarray]:
-    """Each pair's time from the first, and its measured minus commanded acceleration."""
+def layer_scores(candidate: Any, current: Any | None, pairs: GatePairs,
+                 layer_hz: tuple[tuple[float, float], tuple[float, float]], flying_too: bool = False
+                 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """``beyond_layer``, and with ``flying_too`` the flying model's own score on ``pairs`` in parts that add up
+    over rounds (``rejudge.py``): per axis, the sums of squares the layer leaves without it and with it. What the
+    layer leaves of the flying model's error is computed once for both."""
     t = np.concatenate(([0.0], np.cumsum(pairs.dt[:-1])))
-    return t, (pairs.x1[:, 3:6] - pairs.x0[:, 3:6]) / pairs.dt[:, None] - pairs.u
+    raw = (pairs.x1[:, 3:6] - pairs.x0[:, 3:6]) / pairs.dt[:, None] - pairs.u
+    flying = _evaluate(current, pairs.x0, pairs.u, pairs.nb) if current is not None else 0.0
+    r = raw - flying
+    layer_left = r - layer_estimate(t, r, *layer_hz)
+    rest = r - (_evaluate(candidate, pairs.x0, pairs.u, pairs.nb) - flying)
+    score = explained(layer_left, rest - layer_estimate(t, rest, *layer_hz))
+    if not flying_too:
+        return score, None
+    alone = raw - layer_estimate(t, raw, *layer_hz)
+    return score, (np.sum(alone**2, axis=0), np.sum(layer_left**2, axis=0))
 
 
 __all__ = [
     "GateLimits",
     "beyond_layer",
-    "flying_sums",
+    "layer_scores",
     "GatePairs",
     "GateVerdict",
     "gate_pairs",

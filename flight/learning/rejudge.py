@@ -4,7 +4,7 @@ Beside the fast layer the gate lets a network fly on the axes where it removed p
 one second of fresh data. One second is little evidence: on the slow circle a network scored 12 % on z there,
 scored about 0 on the seconds that followed, and flew z 12 % worse than the layer alone. With
 ``online.gate_layer_rejudge`` every later candidate's fresh data (flown under the flying model) also scores the
-flying model (``gate.flying_sums``); the sums add up from its swap on. Once ``REJUDGE_ROUNDS`` seconds are in, an
+flying model (``gate.layer_scores``); the sums add up from its swap on. Once ``REJUDGE_ROUNDS`` seconds are in, an
 axis whose share of what the layer leaves is too low (``retired_axes``) stops flying: the learner flies the same
 networks on the axes left (a new version, so nothing trained on the old one is mixed in), or nominal when none is
 left.
@@ -28,7 +28,7 @@ AXES = "xyz"
 
 @dataclass
 class _Evidence:
-    """The flying model's sums since its swap (``gate.flying_sums``), per axis."""
+    """The flying model's sums since its swap (``gate.layer_scores``), per axis."""
 
     version: int
     left: np.ndarray  # what the layer leaves without the model
