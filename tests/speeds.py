@@ -525,7 +525,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_tx_cadence.py": FAST,
     "test_vertical_learning.py": {
         "*": BOTH,
-        "test_the_learning_profile_is_a_valid_config_that_changes_only_learning_beside_the_layer": FAST,
+        "test_the_defaults_learn_beside_the_layer_from_slow_flight_and_judge_what_flies": FAST,
     },
     "test_wake_only.py": {
         "*": FAST,

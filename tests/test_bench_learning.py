@@ -206,12 +206,12 @@ def test_a_config_file_becomes_every_flight_s_overrides_before_the_command_line_
     from cfknode.app.bench.learning import _command, _file_overrides
     from cfknode.app.config import ConfigError
 
-    profile = Path(__file__).resolve().parents[1] / "examples" / "learning-beside-the-layer.yaml"
+    profile = Path(__file__).resolve().parents[1] / "examples" / "learning-in-a-wake.yaml"
     extra = dict(_file_overrides(str(profile)))
-    assert extra["online.layer_replay_windows"] == 7 and extra["online.gate_layer_min_pairs"] == 400
+    assert extra["online.layer_replay_windows"] == 9 and extra["online.gate_layer_min_pairs"] == 800
     job = Job(BY_NAME["vertical A=0.3 f=0.5"], "online+layer", 0, str(tmp_path), 2.0, tuple(extra.items()))
     cfg = load_config(overrides=flight_overrides(job))
-    assert cfg.online.layer_filter_hz == 2.0 and cfg.online.gate_layer_min_gain == 0.005
+    assert cfg.online.layer_filter_hz == 8.0 and cfg.online.gate_layer_min_gain == 0.01 and cfg.knode.queue_size == 1
     args = argparse.Namespace(quick=True, seeds=1, groups="", cells="", rows="", duration=0.0, fixed_latency=0.1,
                               config=str(profile), set=["online.layer_weight_decay=0.1"])
     executor = argparse.Namespace(command_flags=lambda: "--jobs 1")

@@ -86,10 +86,15 @@ def test_against_the_lagged_command_a_vertical_oscillation_shows_the_thrust_lost
     assert slopes[0.0] > k_in + 0.15  # the motors' lag (tau w^2 = +0.25) hides most of it
 
 
-def test_the_setting_reaches_the_learner_and_is_off_by_default():
-    assert learner_settings(load_config(), lockstep=True).command_lag_s == (0.0, 0.0)
-    cfg = load_config(overrides={"online.command_lag_s": [0.0, 0.015]})
-    assert learner_settings(cfg, lockstep=True).command_lag_s == (0.0, 0.015)
+def test_beside_the_layer_the_motors_lag_reaches_the_learner_and_without_it_the_command_is_as_sent():
+    cfg = load_config()
+    assert learner_settings(cfg, lockstep=True).command_lag_s == (0.0, cfg.vehicle.motor_time_constant)
+    alone = load_config(overrides={"controller.adaptation": "none"})
+    assert learner_settings(alone, lockstep=True).command_lag_s == (0.0, 0.0)  # the paper learner's targets
+    lagged = load_config(overrides={"controller.adaptation": "none", "online.command_lag_s": [0.0, 0.015]})
+    assert learner_settings(lagged, lockstep=True).command_lag_s == (0.0, 0.015)
+    sent = load_config(overrides={"online.layer_command_lag_s": [0.0, 0.0]})
+    assert learner_settings(sent, lockstep=True).command_lag_s == (0.0, 0.0)
 
 
 def test_offline_segments_are_lagged_as_the_recorder_lags_them_and_the_neighbour_columns_are_kept():

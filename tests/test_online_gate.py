@@ -354,16 +354,13 @@ def test_the_velocity_bounds_act_beside_the_layer_only() -> None:
     from cfknode.app.config import load_config
     from cfknode.app.learning import gate_limits
 
-    assert gate_limits(load_config()).max_velocity_coupling == math.inf  # null by default
-    over = {"online.gate_layer_velocity_coupling": 0.1}
-    assert gate_limits(load_config(overrides=over)).max_velocity_coupling == 0.1
-    alone = load_config(overrides={**over, "controller.adaptation": "none"})
-    assert gate_limits(alone).max_velocity_coupling == math.inf
-    assert gate_limits(load_config()).max_climb_feedback == math.inf
-    climb = {"online.gate_layer_climb_feedback": 0.1}
-    assert gate_limits(load_config(overrides=climb)).max_climb_feedback == 0.1
-    alone = load_config(overrides={**climb, "controller.adaptation": "none"})
-    assert gate_limits(alone).max_climb_feedback == math.inf
+    cfg = load_config()
+    assert gate_limits(cfg).max_velocity_coupling == 0.1 and gate_limits(cfg).max_climb_feedback == 0.1
+    alone = load_config(overrides={"controller.adaptation": "none"})
+    assert gate_limits(alone).max_velocity_coupling == math.inf and gate_limits(alone).max_climb_feedback == math.inf
+    off = {"online.gate_layer_velocity_coupling": None, "online.gate_layer_climb_feedback": None}
+    limits_off = gate_limits(load_config(overrides=off))  # null: any
+    assert limits_off.max_velocity_coupling == math.inf and limits_off.max_climb_feedback == math.inf
 
 
 def test_beside_the_layer_a_horizontal_effectiveness_far_from_one_is_refused_and_a_thrust_slope_is_not() -> None:

@@ -115,7 +115,7 @@ def learner_settings(
         latency=LatencyPolicy(o.latency, o.fixed_latency_s, o.latency_quantum_s),
         held_limits=gate_limits(cfg, speed, layer_live=False) if layer else None,
         wake_only=WakeOnly(v.gravity, v.newton_per_cmd / v.mass) if wake_only(cfg) else None,
-        command_lag_s=o.command_lag_s,
+        command_lag_s=o.layer_command_lag_s if layer else o.command_lag_s,
     )
 
 

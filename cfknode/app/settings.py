@@ -72,6 +72,8 @@ class OnlineConfig:
     layer_weight_decay: float = setting(low=0, high=100, doc="beside a fast layer: weight_decay")
     layer_filter_hz: float = setting(unit="Hz", low=0.5, high=100,
         doc="beside a fast layer: the velocity low-pass of training and gate (training.velocity_filter_hz otherwise)")
+    layer_command_lag_s: tuple[float, float] = setting(unit="s", low=0, high=0.5,
+        doc="beside a fast layer: command_lag_s")
     layer_input_bounds: bool = setting(
         doc="beside a fast layer: each network is held to the range of its training data (models/input_bounds.py)")
     trainer_timeout: float = setting(unit="s", low=0, high=600, open_low=True,

@@ -233,7 +233,7 @@ def add_learning_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rows", default="", help=f"comma-separated subset of the rows {', '.join(CONTROLLERS)} (default: all)")
     p.add_argument("--config", default="", metavar="FILE",
                    help="a YAML file overriding the defaults on every flight (e.g. "
-                        "examples/learning-beside-the-layer.yaml); --set comes after it")
+                        "examples/learning-in-a-wake.yaml); --set comes after it")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override on every flight (e.g. a layer to bench), repeatable")
     p.add_argument("--fixed-latency", type=float, default=DEFAULT_FIXED_LATENCY_S, metavar="S",
