@@ -32,7 +32,7 @@ class TrainingConfig:
     validation_fraction: float = setting(low=0, high=1, open_low=True, open_high=True,
         doc="the last fraction of each log is held out for the validation error")
     command_lag_s: tuple[float, float] = setting((0.0, 0.0), unit="s", low=0, high=0.5,
-        doc="(x/y, z) lags the recorded commands act through: targets use the lagged command (online.command_lag_s)")
+        doc="(x/y, z) lags the recorded commands act through: targets use the lagged command (online.layer_command_lag_s)")
     batch_size: int = setting(16384, low=64, high=10000000,
         doc="pairs per step; above it each step draws a random batch (docs/data.md#training-speed)")
 
