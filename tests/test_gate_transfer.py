@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cfknode.flight.learning.gate import beyond_layer, gate_pairs, run_gate
+from cfknode.flight.learning.gate import gate_pairs, layer_scores, run_gate
 from cfknode.models.residual_np import ResidualQueue
 from test_online_gate import RATE, limits, linear_residual_model
 
@@ -36,11 +36,11 @@ def test_a_term_that_is_there_scores_and_one_that_is_not_does_not():
     fresh = gate_pairs(t, x, u, 8.0)
     _, true_model = slope_model(-0.6)
     _, wrong_model = slope_model(+0.6)
-    assert beyond_layer(true_model, None, fresh, LAYER_HZ)[0] > 0.5  # the drag the layer is too slow for
-    assert beyond_layer(wrong_model, None, fresh, LAYER_HZ)[0] < 0.0
+    assert layer_scores(true_model, None, fresh, LAYER_HZ)[0][0] > 0.5  # the drag the layer is too slow for
+    assert layer_scores(wrong_model, None, fresh, LAYER_HZ)[0][0] < 0.0
     # A plant without the slope: the slope a model learned elsewhere makes things worse, not better.
     t, x, u = manoeuvre(0.0, seed=2)
-    assert beyond_layer(true_model, None, gate_pairs(t, x, u, 8.0), LAYER_HZ)[0] < 0.0
+    assert layer_scores(true_model, None, gate_pairs(t, x, u, 8.0), LAYER_HZ)[0][0] < 0.0
 
 
 def test_the_gate_rejects_a_slope_learned_on_another_manoeuvre_and_flies_one_that_transfers():
@@ -82,7 +82,7 @@ def test_a_minimum_score_refuses_a_candidate_that_removes_too_little_of_what_the
     t, x, u = manoeuvre(-0.6, seed=4)
     fresh = gate_pairs(t[400:], x[400:], u[400:], 8.0)
     mf, small = slope_model(-0.06)  # a tenth of the drag that is there: a small positive score
-    score = float(beyond_layer(small, None, fresh, LAYER_HZ)[0])
+    score = float(layer_scores(small, None, fresh, LAYER_HZ)[0][0])
     assert 0.0 < score < 0.3
     assert run_gate(mf, small, None, fresh, x[:400], u[:400], lenient).accepted
     strict = dataclasses.replace(lenient, min_score=0.3)

@@ -191,7 +191,7 @@ class GateLimits:
     # m/s^2: the most climb a candidate may predict from tilting either way at the top of the input box (``tilt_climb``).
     max_tilt_climb: float = math.inf
     # Beside the fast layer: its observer and output cut-offs ((xy, z) Hz each). A candidate must remove part
-    # of what the layer leaves on held-out data on some axis (``beyond_layer``), the score `cfknode model
+    # of what the layer leaves on held-out data on some axis (``layer_scores``), the score `cfknode model
     # check` reports: one that only re-learns what the layer already takes is never flown.
     layer_hz: tuple[tuple[float, float], tuple[float, float]] | None = None
     # ... and remove more than this share of it on that axis (0: any positive share).
@@ -437,19 +437,14 @@ def _implausible(limits: GateLimits, extremes: tuple[float, ...]) -> str:
     return ""
 
 
-def beyond_layer(candidate: Any, current: Any | None, pairs: GatePairs,
-                 layer_hz: tuple[tuple[float, float], tuple[float, float]]) -> np.ndarray:
-    """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
-    candidate (in its place) and the layer remove together: ``residual_check.shares(...).beyond_layer``."""
-    return layer_scores(candidate, current, pairs, layer_hz)[0]
-
-
 def layer_scores(candidate: Any, current: Any | None, pairs: GatePairs,
                  layer_hz: tuple[tuple[float, float], tuple[float, float]], flying_too: bool = False
                  ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
-    """``beyond_layer``, and with ``flying_too`` the flying model's own score on ``pairs`` in parts that add up
-    over rounds (``rejudge.py``): per axis, the sums of squares the layer leaves without it and with it. What the
-    layer leaves of the flying model's error is computed once for both."""
+    """Per axis, the share of what the fast layer leaves of the flying model's error on ``pairs`` that the
+    candidate (in its place) and the layer remove together (``residual_check.shares(...).beyond_layer``); with
+    ``flying_too`` also the flying model's own score on ``pairs`` in parts that add up over rounds
+    (``rejudge.py``): per axis, the sums of squares the layer leaves without it and with it. What the layer
+    leaves of the flying model's error is computed once for both."""
     t = np.concatenate(([0.0], np.cumsum(pairs.dt[:-1])))
     raw = (pairs.x1[:, 3:6] - pairs.x0[:, 3:6]) / pairs.dt[:, None] - pairs.u
     flying = _evaluate(current, pairs.x0, pairs.u, pairs.nb) if current is not None else 0.0
@@ -465,7 +460,6 @@ def layer_scores(candidate: Any, current: Any | None, pairs: GatePairs,
 
 __all__ = [
     "GateLimits",
-    "beyond_layer",
     "layer_scores",
     "GatePairs",
     "GateVerdict",
