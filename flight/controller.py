@@ -8,6 +8,11 @@ and other people's simulators all call it, so there is one copy of the law.
 Observers (the online learner) see each tick once its command has gone out: the caller
 calls ``publish()`` after sending; a caller that never does is covered by ``step``, which
 publishes the previous tick first.
+
+A tick splits as a real-time iteration does: a caller that sets ``prepares_after_send`` calls
+``prepare()`` after each send, which does the next tick's work that needs no new pose (the model's linearisation
+at the plan just solved, what the command leaves the fast layer), so that the pose's next command waits only for
+the rest. The numbers are the same either way (docs/design.md#the-tick-in-two-phases).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from cfknode.flight.adaptation import GROUND_MARGIN, AdaptationEstimate, Adaptat
 from cfknode.flight.fall_guard import FallGuard, FallGuardSettings, guard_acceleration
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import CommandShaping, command_saturated, force_to_setpoint, shape_force
-from cfknode.flight.model_slot import ModelSlot, linearisation_points
+from cfknode.flight.model_slot import ModelSlot, PreparedResidual, linearisation_points, plan_nodes
 from cfknode.flight.mpc_problem import MpcParameters
 from cfknode.flight.settings import ControllerConfig
 from cfknode.flight.solver_stats import SolverStats
@@ -160,6 +165,11 @@ class Controller:
         self._u_pred: np.ndarray | None = None
         self._pending: TickInfo | None = None
         self._ground_z = ground_z
+        self._prepared: PreparedResidual | None = None  # the next tick's linearisation, done after the send
+        self._command_flown: tuple[Any, ...] | None = None  # after_command's arguments, until prepare()
+        # Set by a caller that calls prepare() after each send (the flight loop): the layer's record of a command
+        # then waits for it (or for the next step, reset or idle).
+        self.prepares_after_send = False
 
     @property
     def ground_z(self) -> float | None:
@@ -206,6 +216,7 @@ class Controller:
         stays current, but the geometric law flies, less the layer's offset, tilted up to this many degrees
         (see ``_brake``).
         """
+        self._record_command()
         obs = state if observed is None else observed
         start = time.perf_counter()
         if self._ground_z is None:
@@ -230,7 +241,9 @@ class Controller:
         shaped = shape_force(acc, self.vehicle, settings, shaping)
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, settings)
         if adapt is not None:
-            adapt.after_command(np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
+            self._command_flown = (np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
+            if not self.prepares_after_send:
+                self._record_command()
         if self.fall_guard is not None:
             self.fall_guard.sent(setpoint.thrust * self.vehicle.newton_per_cmd)
         # From the command actually sent, on every path: a cut tick's motion is the limit's, not the model's.
@@ -255,13 +268,29 @@ class Controller:
         for observer in self.observers:
             observer.on_tick(info)
 
+    def prepare(self) -> None:
+        """After the send: the next tick's work that needs no new pose. The fast layer records the command just
+        flown, and the model is linearised at the plan just solved (the next tick's nodes; not for a model that
+        takes the neighbour's moving position). ``step`` flies the result if no swap came between."""
+        self._record_command()
+        nodes = plan_nodes(self._x_pred, self._u_pred) if self.model is not None else None
+        self._prepared = self.model.prepare(*nodes) if nodes is not None else None  # type: ignore[union-attr]
+
+    def _record_command(self) -> None:
+        """The fast layer's record of the last command (``after_command``), once."""
+        flown, self._command_flown = self._command_flown, None
+        if flown is not None and self.adaptation is not None:
+            self.adaptation.after_command(*flown)
+
     def reset(self) -> None:
         """Forget the warm start and the adaptation (after flying blind, or any gap in the controller's ticks)."""
         self._x_pred = self._u_pred = None
+        self._prepared = None
         self.idle()
 
     def idle(self) -> None:
         """A tick someone else flew (motors off, waiting for a pose): the adaptation starts over."""
+        self._record_command()
         if self.adaptation is not None:
             self.adaptation.off_air()
         if self.fall_guard is not None:
@@ -283,7 +312,10 @@ class Controller:
             return self._geometric(state, ref), True, 0.0, "geometric", "ok", None
         x0 = np.concatenate((state.p, state.v))
         model_residual = None
-        if self.model is not None:
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and self.model is not None and self.model.holds(prepared):
+            model_residual = prepared.residual
+        elif self.model is not None:
             model_residual = self.model.residual(*linearisation_points(x0, ref.a, self._x_pred, self._u_pred))
         residual = model_residual
         if self.adaptation is not None:

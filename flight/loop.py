@@ -2,7 +2,8 @@
 
 The loop is the only asyncio code on the flight path: it awaits the clock between
 ticks (lockstep sim or wall time) and does the compute synchronously, so a tick's
-measured compute time is the real cost of estimator + MPC + Mellinger + safety + bookkeeping.
+measured compute time is the real cost of estimator + MPC + Mellinger + safety, from the pose's read to
+the send. The log, the observers and the controller's preparation of the next tick follow the send.
 
 The safety supervisor owns the radio: ``FlightParts`` has none, so poses and setpoints reach
 the drone only through ``supervisor.accept_pose`` and ``supervisor.send``. The supervisor
@@ -75,15 +76,8 @@ class FlightRecord:
 
     @classmethod
     def empty(cls, n: int) -> "FlightRecord":
-        return cls(
-            t=np.zeros(n),
-            p=np.zeros((n, 3)),
-            p_ref=np.zeros((n, 3)),
-            compute_s=np.zeros(n),
-            solve_s=np.zeros(n),
-            missed=np.zeros(n, dtype=bool),
-            mpc_ok=np.zeros(n, dtype=bool),
-        )
+        return cls(t=np.zeros(n), p=np.zeros((n, 3)), p_ref=np.zeros((n, 3)), compute_s=np.zeros(n),
+                   solve_s=np.zeros(n), missed=np.zeros(n, dtype=bool), mpc_ok=np.zeros(n, dtype=bool))
 
     def trimmed(self) -> "FlightRecord":
         n = self.ticks
@@ -133,6 +127,7 @@ async def fly(parts: FlightParts) -> FlightRecord:
                     break
     finally:
         parts.controller.observers[:] = loop.inner_observers
+        parts.controller.prepares_after_send = False
     return loop.finish()
 
 
@@ -186,7 +181,7 @@ class _Loop:
         self.observers = [GuardedObserver(o, self.detached) for o in parts.observers]
         self.inner_observers = list(self.controller.observers)
         self.controller.observers[:] = [GuardedObserver(o, self.detached) for o in self.inner_observers]
-        self.controller_failed = self.estimator_failed = False
+        self.controller.prepares_after_send, self.controller_failed, self.estimator_failed = True, False, False
         self.imu = parts.imu
         self.logs_imu = self.imu is not None  # a flight with an IMU logs what each tick saw of it, NaN for nothing yet
         self.held: RefSamples | None = None  # the hold reference once the trajectory has raised
@@ -310,9 +305,8 @@ class _Loop:
                 plan_est, plan_ref = est, ref
                 if self.parts.estimator.command_path.active:
                     plan_est, plan_ref = self.ahead(tick)
-                command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh,
-                                          phase=self.sup.state.value, observed=est,
-                                          brake_tilt_deg=self.sup.brake_tilt_deg)
+                command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh, phase=self.sup.state.value,
+                                          observed=est, brake_tilt_deg=self.sup.brake_tilt_deg)
                 tick.adapted = controller.adaptation is not None
             except Exception as exc:  # noqa: BLE001 - the MPC, the model or the law: fly the fallback
                 self.controller_failed = True
@@ -402,6 +396,12 @@ class _Loop:
                             flown is not None and flown.saturated, guarded=flown is not None and flown.guarded)
             for observer in self.observers:
                 observer.on_tick(info)
+        if tick.action is FLY and not self.controller_failed:
+            try:  # the next tick's work that needs no pose, outside this tick's compute (controller.py)
+                controller.prepare()
+            except Exception as exc:  # noqa: BLE001 - the model's linearisation, as inside the tick
+                self.controller_failed = True
+                self.fault("the controller", exc, ERROR_LAND)
 
     def finish(self) -> FlightRecord:
         rec = self.rec

@@ -4,6 +4,10 @@ The networks stay out of the CasADi graph (docs/solver-timings.md#networks-outsi
 evaluated with its Jacobians in batched numpy at the previous solution's nodes, and the
 affine result becomes the MPC's per-stage parameters. Swapping a model is one reference
 assignment between ticks, so it never rebuilds or recompiles the solver.
+
+The nodes are the last plan's, known before the next pose arrives: the linearisation can be done after a send,
+as the real-time iteration's preparation phase (``ModelSlot.prepare``), and the next tick only checks that the
+model it was done for still flies.
 """
 
 from __future__ import annotations
@@ -21,6 +25,15 @@ class Linearisable(Protocol):
     def linearise(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def evaluate(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class PreparedResidual:
+    """A linearisation done ahead of its tick: valid while ``model`` (at ``version``) flies."""
+
+    model: Any
+    version: int
+    residual: ResidualLinearisation
 
 
 @dataclass(frozen=True)
@@ -61,6 +74,22 @@ class ModelSlot:
             self._model.linearise(x_nodes, u_nodes, nb)  # type: ignore[call-arg]
         return ResidualLinearisation(c, jx, ju)
 
+    def prepare(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> PreparedResidual | None:
+        """``residual`` at the next tick's nodes, done now; None where it cannot be done ahead: flying nominal,
+        or a model that takes the neighbour's position, which moves until the tick."""
+        model = self._model
+        if model is None or (self.neighbour is not None and getattr(model, "takes_neighbour", False)):
+            return None
+        c, jx, ju = model.linearise(x_nodes, u_nodes)
+        return PreparedResidual(model, self.version, ResidualLinearisation(c, jx, ju))
+
+    def holds(self, prepared: PreparedResidual) -> bool:
+        """Whether ``prepared`` was done for the model flying now (no swap since)."""
+        if prepared.model is not self._model or prepared.version != self.version:
+            return False
+        self.last_neighbour = None
+        return True
+
     def swap(self, model: Linearisable | None, version: int, now: float) -> SwapRecord:
         start = time.perf_counter()
         self._model = model
@@ -70,12 +99,20 @@ class ModelSlot:
         return record
 
 
+def plan_nodes(x_pred: np.ndarray | None, u_pred: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The previous solution's nodes (RTI), or None without a usable one (the first tick, a failed solve)."""
+    if x_pred is not None and u_pred is not None and np.all(np.isfinite(x_pred)) and np.all(np.isfinite(u_pred)):
+        return x_pred[:-1], u_pred
+    return None
+
+
 def linearisation_points(
     x0: np.ndarray, ref_a: np.ndarray, x_pred: np.ndarray | None, u_pred: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nodes to linearise at: the previous solution (RTI), or the current state and the
     reference acceleration on the first tick and after a failed solve."""
+    nodes = plan_nodes(x_pred, u_pred)
+    if nodes is not None:
+        return nodes
     n = ref_a.shape[0] - 1
-    if x_pred is not None and u_pred is not None and np.all(np.isfinite(x_pred)) and np.all(np.isfinite(u_pred)):
-        return x_pred[:-1], u_pred
     return np.broadcast_to(x0, (n, x0.shape[0])), ref_a[:-1]

@@ -454,6 +454,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_every_cell_flies_at_one_height_with_room_for_its_sag": FLIES,
     },
     "test_tick_errors.py": FLIES,
+    "test_tick_phases.py": FAST,
     "test_training.py": {
         "*": FAST,
         "test_regularised_training_recovers_the_physical_residual": (SLOW,),

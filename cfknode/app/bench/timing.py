@@ -53,9 +53,9 @@ def synthetic_queue(hidden: tuple[int, ...], n_networks: int, seed: int = 0) -> 
     return ResidualQueue.from_model_file(mf)
 
 
-def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, seconds: float) -> tuple[Timing, Timing]:
-    """Solve time, and the whole control step's time (linearise + solve + Mellinger layer), of the
-    controller in a 400 Hz closed loop on a circle.
+def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, seconds: float) -> tuple[Timing, ...]:
+    """Solve time, the control step's time (solve + Mellinger layer: what a pose waits for), and the preparation's
+    after the send (the next tick's linearisation), of the controller in a 400 Hz closed loop on a circle.
 
     The plant is the double integrator plus the same residual the MPC is given, so the loop
     tracks and the solver works on realistic warm starts.
@@ -65,6 +65,7 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
     start_ref = circle_samples(np.zeros(1), 0.5, 0.4, 1.0)
     # The floor where the guess would put it (the first state's height): said, not guessed.
     controller = Controller(ctrl, cfg.vehicle, model=slot, solver=mpc, ground_z=float(start_ref.p[0][2]))
+    controller.prepares_after_send = True  # as the flight loop: prepare() after each send, timed apart
     # Start on the reference: the bench times tracking, not the recovery from a 0.4 m/s step.
     x = np.concatenate((start_ref.p[0], start_ref.v[0]))
     level = np.array([1.0, 0.0, 0.0, 0.0])
@@ -75,17 +76,20 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
         return np.concatenate((xs[3:], us + r))
 
     ticks = int(round(seconds / tc))
-    solve, total = np.empty(ticks), np.empty(ticks)
+    solve, total, prepare = np.empty(ticks), np.empty(ticks), np.empty(ticks)
     for i in range(ticks):
         t = i * tc
         ref = circle_samples(controller.preview_times(t), 0.5, 0.4, 1.0)
         start = time.perf_counter()
         command = controller.step(t, StateEstimate(t, x[:3], x[3:], level, 0.0), ref)
-        total[i] = time.perf_counter() - start
+        sent = time.perf_counter()
+        controller.prepare()  # as the flight loop does after the send
+        total[i], prepare[i] = sent - start, time.perf_counter() - sent
         solve[i] = command.solve_s
         x = rk4_step(plant, x, command.acc, tc)
     label = f"{mpc.backend}{' + KNODE x' + str(queue.n_networks) if queue is not None else ''}"
-    return Timing.of(f"MPC solve, {label}", solve), Timing.of(f"control step, {label}", total)
+    return (Timing.of(f"MPC solve, {label}", solve), Timing.of(f"control step, {label}", total),
+            Timing.of(f"after the send, {label}", prepare, note="the next tick's linearisation (controller.prepare)"))
 
 
 class _TimedLayer:
