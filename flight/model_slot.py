@@ -84,7 +84,8 @@ class ModelSlot:
         return PreparedResidual(model, self.version, ResidualLinearisation(c, jx, ju))
 
     def holds(self, prepared: PreparedResidual) -> bool:
-        """Whether ``prepared`` was done for the model flying now (no swap since)."""
+        """Whether ``prepared`` was done for the model flying now (no swap since). If so it is this tick's
+        residual, and, as ``residual`` records for such a model, no neighbour position was given to it."""
         if prepared.model is not self._model or prepared.version != self.version:
             return False
         self.last_neighbour = None
