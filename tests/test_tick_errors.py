@@ -1,6 +1,7 @@
 """A part that raises in flight degrades the flight instead of ending it.
 
-Short lockstep flights with one part made to raise (monkeypatched): the controller, an
+Short lockstep flights with one part made to raise (monkeypatched): the controller (in the tick or
+after the send), an
 observer, the flight log, the estimator, the simulated plant. Each asserts how the flight
 ended, that the error went to the log once with its traceback, that the drone was handed
 back with its motors off, and that the log is complete.
@@ -14,6 +15,7 @@ from typing import Any
 
 from cfknode.app.cli import main
 from cfknode.app.config import load_config
+from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import VelocityEstimator
 from cfknode.app.logs.writer import FlightLog, read_log
 from cfknode.flight.mpc import TranslationalMpc
@@ -71,6 +73,19 @@ def test_a_raising_mpc_flies_the_fallback_and_lands(tmp_path, monkeypatch):
     assert len(events) == 1  # one traceback, not one per tick
     assert events[0]["part"] == "the controller" and "ZeroDivisionError: injected failure" in events[0]["traceback"]
     assert res.summary.extra["internal_errors"] == list(out.errors)
+    _assert_handed_back(res)
+
+
+def test_a_raising_preparation_after_the_send_flies_the_fallback_and_lands(tmp_path, monkeypatch):
+    # The controller's work after the send (the next tick's linearisation) raising is the controller's fault.
+    monkeypatch.setattr(Controller, "prepare", _raise_after(int(RAISE_AT_S * 400), Controller.prepare))
+    res = run_flight(_cfg(tmp_path))
+    out = res.outcome
+    assert out.state.value == "LANDED" and out.cause == "internal_error"
+    assert out.message.startswith("landed: internal error in the controller at ")
+    assert res.summary.extra["fallback_reasons"].get("error", 0) > 100  # the fallback flew the landing
+    events = _error_events(res)
+    assert len(events) == 1 and events[0]["part"] == "the controller"
     _assert_handed_back(res)
 
 
