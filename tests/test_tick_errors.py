@@ -1,8 +1,7 @@
 """A part that raises in flight degrades the flight instead of ending it.
 
 Short lockstep flights with one part made to raise (monkeypatched): the controller (in the tick or
-after the send), an
-observer, the flight log, the estimator, the simulated plant. Each asserts how the flight
+after the send), an observer, the flight log, the estimator, the simulated plant. Each asserts how the flight
 ended, that the error went to the log once with its traceback, that the drone was handed
 back with its motors off, and that the log is complete.
 """
