@@ -44,6 +44,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_fit_finds_the_features_weight_beside_a_constant_and_keeps_the_prior_without_excitation": FAST,
         "test_the_prediction_weights_the_variation_and_hands_the_vertical_mean_over": FAST,
         "test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb": FAST,
+        "test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers": FAST,
     },
     "test_air_model.py": {
         "*": FAST,

@@ -100,6 +100,35 @@ def test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb() -> N
     assert np.allclose(coeffs.mean, cruise)
 
 
+def test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers() -> None:
+    """At a swap, a network whose horizontal mean is near the layer's own offset there learned the constant the
+    layer has (a wind): the layer keeps it (k = 0) and the network flies its variation about that mean, which is
+    held; a mean the layer did not hold (a network fitted on the take-off) flies as the network's."""
+    coeffs = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
+    recent = np.tile([0.35, 0.18, 0.05], (40, 1))
+    coeffs.restart(recent)
+    coeffs.leave_shared_constants(np.array([0.46, 0.0, 0.02]))  # x: 0.76 of the layer's; y: the layer had none
+    r = np.array([0.40, 0.20, 0.05])
+    # x: only the variation about the held mean (the layer's offset carries the 0.35); y: the network's mean too.
+    assert np.allclose(coeffs.prediction(r), [0.05, 0.20, 0.0])
+    sigma, omega, held = np.zeros(3), np.full(3, 2.0 * math.pi), float(coeffs.mean[0])
+    for _ in range(400):
+        coeffs.tick(r, sigma, omega, 1.0 / RATE, learn=False)
+    assert coeffs.mean[0] == held and coeffs.mean[1] > 0.19  # held on x; y follows the network's output
+    lin = ResidualLinearisation(np.tile(r, (2, 1)), np.zeros((2, 3, 6)), np.zeros((2, 3, 3)))
+    flown = coeffs.linearisation(lin, np.array([0.46, 0.0, 0.0]), vertical_acts=True)
+    assert flown.c[0, 0] == pytest.approx(0.46 + 0.05)  # the layer's constant and the network's variation
+    for offset in ([0.46, 0.0, 0.0], [-0.3, 0.18, 0.0], [0.2, 0.0, 0.0]):  # far from the mean, or the other sign
+        other = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE, (False, True, True))
+        other.restart(recent, (False, True, True))
+        other.leave_shared_constants(np.array(offset))
+        assert other.prediction(r)[0] == 0.0  # an axis the network does not fly stays the layer's alone
+    far = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
+    far.restart(recent)
+    far.leave_shared_constants(np.array([0.9, -0.2, 0.0]))  # x: 0.39 of the layer's; y: the other sign
+    assert np.allclose(far.prediction(r)[:2], [0.40, 0.20])
+
+
 class SpeedModel:
     """A learned model that explains ``share`` of the plant's drag (and, optionally, a constant)."""
 

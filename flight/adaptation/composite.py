@@ -14,6 +14,12 @@ scale). Who owns what:
   MPC, whose input cost is on u - a_ref, no longer needs a standing u to hover. Given to the MPC as a residual
   constant instead, that input cost left an offline model 2.7 cm low at 1.3x mass while the layer, seeing
   nothing left to explain, acted on no axis.
+- a constant the layer already holds: at a swap, a new model whose horizontal mean (on the recent ticks) is
+  within ``SHARED_CONSTANT`` of the layer's own offset on that axis learned the constant the layer has (a wind):
+  the layer keeps it (k = 0 there) and the model flies its variation about that mean, held where the swap took
+  it (a moving mean would hand the turning drag to the layer after all). Handed to the model, the constant left
+  the layer an offset near 0, where its deadband shrinks what is left: drag + wind on the lab circle flew
+  1.02-1.05x the layer alone. A mean the layer did not hold (a network fitted on the take-off) stays the model's.
 - k is the same in what the layer's observer is told the model predicts and in what the MPC flies, whether
   or not the layer acts: a constant the MPC flies but the observer never saw is invisible to the layer's
   engagement. Flown while the layer's vertical did not act, a take-off network's 0.02 m/s^2 of vertical mean
@@ -40,6 +46,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.flight.mpc_problem import ResidualLinearisation
+
+# A swapped-in model's horizontal mean within this share of the layer's offset is the layer's constant. Drag + wind's
+# networks brought 0.73-0.76 of the layer's; take-off networks a constant where the layer had none.
+SHARED_CONSTANT = 0.5
 
 
 @dataclass(frozen=True)
@@ -121,6 +131,7 @@ class ModelCoefficients:
         self._phi_f = [0.0, 0.0, 0.0]  # the feature through the observer's own low-pass
         self._fits = [prior_fit(self._prior_info)] * 3
         self._started = False
+        self._held = [False, False, False]  # the mean held where a swap took it (a constant the layer keeps)
 
     def restart(self, r_recent: np.ndarray, flown: tuple[bool, bool, bool] = (True, True, True)) -> None:
         """A new model: a = 1 again, its mean taken where the vehicle just flew (``r_recent`` (n, 3), the new
@@ -134,6 +145,14 @@ class ModelCoefficients:
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
             self._mean_taken = True
+
+    def leave_shared_constants(self, offset: np.ndarray) -> None:
+        """After ``restart``: on a flown horizontal axis whose new mean is the layer's own ``offset`` there (within
+        ``SHARED_CONSTANT`` of it), the layer keeps the constant (k = 0) and the mean is held (see the module)."""
+        for i in range(2):
+            if self.flown[i] and abs(float(self.mean[i]) - float(offset[i])) <= SHARED_CONSTANT * abs(float(offset[i])):
+                self._k[i] = 0.0
+                self._held[i] = True
 
     def prediction(self, r: np.ndarray) -> np.ndarray:
         return composite_prediction(r, self.a, self.mean, self._k)
@@ -193,7 +212,7 @@ class ModelCoefficients:
         a_old, m_old = self.a.tolist(), self.mean.tolist()
         a_new, m_new, shift = list(a_old), list(m_old), [0.0, 0.0, 0.0]
         for i in range(3):
-            m_new[i] = m_old[i] + k_mean * (rs[i] - m_old[i])
+            m_new[i] = m_old[i] if self._held[i] else m_old[i] + k_mean * (rs[i] - m_old[i])
             w = min(1.0, float(omega[i]) * dt)
             phi_f = self._phi_f[i] = self._phi_f[i] + w * ((rs[i] - m_new[i]) - self._phi_f[i])
             if learn and self.flown[i]:
@@ -210,5 +229,5 @@ class ModelCoefficients:
         return np.array(shift)
 
 
-__all__ = ["AxisFit", "CoefficientSettings", "ModelCoefficients", "composite_prediction", "fit_coefficient",
-           "fit_step", "prior_fit"]
+__all__ = ["SHARED_CONSTANT", "AxisFit", "CoefficientSettings", "ModelCoefficients", "composite_prediction",
+           "fit_coefficient", "fit_step", "prior_fit"]
