@@ -127,6 +127,11 @@ def test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers() -> Non
     far.restart(recent)
     far.leave_shared_constants(np.array([0.9, -0.2, 0.0]))  # x: 0.39 of the layer's; y: the other sign
     assert np.allclose(far.prediction(r)[:2], [0.40, 0.20])
+    none = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
+    none.restart(np.zeros((40, 3)))
+    none.leave_shared_constants(np.zeros(3))  # no offset, no mean: nothing the layer holds
+    none.tick(r, sigma, omega, 1.0 / RATE, learn=False)
+    assert none.mean[0] > 0.0  # the mean moves, as a network's own
 
 
 class SpeedModel:

@@ -147,10 +147,11 @@ class ModelCoefficients:
             self._mean_taken = True
 
     def leave_shared_constants(self, offset: np.ndarray) -> None:
-        """After ``restart``: on a flown horizontal axis whose new mean is the layer's own ``offset`` there (within
-        ``SHARED_CONSTANT`` of it), the layer keeps the constant (k = 0) and the mean is held (see the module)."""
+        """After ``restart``: on a flown horizontal axis whose new mean is the layer's own ``offset`` there (closer
+        than ``SHARED_CONSTANT`` of it; a layer with no offset there holds no constant), the layer keeps the
+        constant (k = 0) and the mean is held (see the module)."""
         for i in range(2):
-            if self.flown[i] and abs(float(self.mean[i]) - float(offset[i])) <= SHARED_CONSTANT * abs(float(offset[i])):
+            if self.flown[i] and abs(float(self.mean[i]) - float(offset[i])) < SHARED_CONSTANT * abs(float(offset[i])):
                 self._k[i] = 0.0
                 self._held[i] = True
 
