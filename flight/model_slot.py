@@ -80,16 +80,12 @@ class ModelSlot:
         model = self._model
         if model is None or (self.neighbour is not None and getattr(model, "takes_neighbour", False)):
             return None
-        c, jx, ju = model.linearise(x_nodes, u_nodes)
-        return PreparedResidual(model, self.version, ResidualLinearisation(c, jx, ju))
+        residual = self.residual(x_nodes, u_nodes)
+        return None if residual is None else PreparedResidual(model, self.version, residual)
 
     def holds(self, prepared: PreparedResidual) -> bool:
-        """Whether ``prepared`` was done for the model flying now (no swap since). If so it is this tick's
-        residual, and, as ``residual`` records for such a model, no neighbour position was given to it."""
-        if prepared.model is not self._model or prepared.version != self.version:
-            return False
-        self.last_neighbour = None
-        return True
+        """Whether ``prepared`` was done for the model flying now (no swap since): then it is this tick's residual."""
+        return prepared.model is self._model and prepared.version == self.version
 
     def swap(self, model: Linearisable | None, version: int, now: float) -> SwapRecord:
         start = time.perf_counter()
