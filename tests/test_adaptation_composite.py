@@ -106,8 +106,7 @@ def test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers() -> Non
     held; a mean the layer did not hold (a network fitted on the take-off) flies as the network's."""
     coeffs = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
     recent = np.tile([0.35, 0.18, 0.05], (40, 1))
-    coeffs.restart(recent)
-    coeffs.leave_shared_constants(np.array([0.46, 0.0, 0.02]))  # x: 0.76 of the layer's; y: the layer had none
+    coeffs.restart(recent, layer_offset=np.array([0.46, 0.0, 0.02]))  # x: 0.76 of the layer's; y: the layer had none
     r = np.array([0.40, 0.20, 0.05])
     # x: only the variation about the held mean (the layer's offset carries the 0.35); y: the network's mean too.
     assert np.allclose(coeffs.prediction(r), [0.05, 0.20, 0.0])
@@ -120,16 +119,13 @@ def test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers() -> Non
     assert flown.c[0, 0] == pytest.approx(0.46 + 0.05)  # the layer's constant and the network's variation
     for offset in ([0.46, 0.0, 0.0], [-0.3, 0.18, 0.0], [0.2, 0.0, 0.0]):  # far from the mean, or the other sign
         other = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE, (False, True, True))
-        other.restart(recent, (False, True, True))
-        other.leave_shared_constants(np.array(offset))
+        other.restart(recent, (False, True, True), np.array(offset))
         assert other.prediction(r)[0] == 0.0  # an axis the network does not fly stays the layer's alone
     far = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
-    far.restart(recent)
-    far.leave_shared_constants(np.array([0.9, -0.2, 0.0]))  # x: 0.39 of the layer's; y: the other sign
+    far.restart(recent, layer_offset=np.array([0.9, -0.2, 0.0]))  # x: 0.39 of the layer's; y: the other sign
     assert np.allclose(far.prediction(r)[:2], [0.40, 0.20])
     none = ModelCoefficients(CoefficientSettings((0.0, 1.5), 4.0, 0.05, 1.0), RATE)
-    none.restart(np.zeros((40, 3)))
-    none.leave_shared_constants(np.zeros(3))  # no offset, no mean: nothing the layer holds
+    none.restart(np.zeros((40, 3)), layer_offset=np.zeros(3))  # no offset, no mean: nothing the layer holds
     none.tick(r, sigma, omega, 1.0 / RATE, learn=False)
     assert none.mean[0] > 0.0  # the mean moves, as a network's own
 

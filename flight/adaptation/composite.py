@@ -133,10 +133,14 @@ class ModelCoefficients:
         self._started = False
         self._held = [False, False, False]  # the mean held where a swap took it (a constant the layer keeps)
 
-    def restart(self, r_recent: np.ndarray, flown: tuple[bool, bool, bool] = (True, True, True)) -> None:
+    def restart(self, r_recent: np.ndarray, flown: tuple[bool, bool, bool] = (True, True, True),
+                layer_offset: np.ndarray | None = None) -> None:
         """A new model: a = 1 again, its mean taken where the vehicle just flew (``r_recent`` (n, 3), the new
         model's residual on the layer's recent ticks), so that what it hands the layer is what it predicts
-        there and the layer's re-base has little to move; ``flown`` the new model's axes."""
+        there and the layer's re-base has little to move; ``flown`` the new model's axes. ``layer_offset``: the
+        layer's offset at the swap; on a flown horizontal axis where the new mean is closer to it than
+        ``SHARED_CONSTANT`` of it, the layer keeps that constant (k = 0) and the mean is held (see the module;
+        a layer with no offset there holds none)."""
         self.flown = np.array(flown, dtype=bool)
         self.reset()
         # A swap's mean is the recent ticks', not one tick's at the floor: it is not taken again (online models
@@ -145,13 +149,11 @@ class ModelCoefficients:
         if r_recent.shape[0]:
             self.mean = np.mean(r_recent, axis=0)
             self._mean_taken = True
-
-    def leave_shared_constants(self, offset: np.ndarray) -> None:
-        """After ``restart``: on a flown horizontal axis whose new mean is the layer's own ``offset`` there (closer
-        than ``SHARED_CONSTANT`` of it; a layer with no offset there holds no constant), the layer keeps the
-        constant (k = 0) and the mean is held (see the module)."""
+        if layer_offset is None:
+            return
         for i in range(2):
-            if self.flown[i] and abs(float(self.mean[i]) - float(offset[i])) < SHARED_CONSTANT * abs(float(offset[i])):
+            d = float(layer_offset[i])
+            if self.flown[i] and abs(float(self.mean[i]) - d) < SHARED_CONSTANT * abs(d):
                 self._k[i] = 0.0
                 self._held[i] = True
 

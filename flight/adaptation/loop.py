@@ -283,8 +283,7 @@ class LoopAdaptation:
                 r = np.asarray(where_flown(inner.evaluate, inner, x, u, nb), dtype=float)
             if r.shape == u.shape and np.all(np.isfinite(r)):
                 if self.coefficients is not None:
-                    self.coefficients.restart(r, self._flown(model))
-                    self.coefficients.leave_shared_constants(self.layer.estimate.offset)
+                    self.coefficients.restart(r, self._flown(model), self.layer.estimate.offset)
                     r = self.coefficients.predictions(r)
                 new_acc = u + r
         elif self.coefficients is not None:
