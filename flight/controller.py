@@ -10,9 +10,10 @@ calls ``publish()`` after sending; a caller that never does is covered by ``step
 publishes the previous tick first.
 
 A tick splits as a real-time iteration does: a caller that sets ``prepares_after_send`` calls
-``prepare()`` after each send, which does the next tick's work that needs no new pose (the model's linearisation
-at the plan just solved, what the command leaves the fast layer), so that the pose's next command waits only for
-the rest. The numbers are the same either way (docs/design.md#the-tick-in-two-phases).
+``prepare()`` after each send, which does the next tick's work that waits for no new pose, so that the pose's
+next command waits only for the solve. The fast layer learns from the pose just flown and records the command
+sent; the model is linearised at the plan just solved; the MPC's residual is put together. The next command then
+flies the layer's estimate from the pose before (2.5 ms older at 400 Hz, docs/design.md#the-tick-in-two-phases).
 """
 
 from __future__ import annotations
@@ -167,8 +168,11 @@ class Controller:
         self._ground_z = ground_z
         self._prepared: PreparedResidual | None = None  # the next tick's linearisation, done after the send
         self._command_flown: tuple[Any, ...] | None = None  # after_command's arguments, until prepare()
-        # Set by a caller that calls prepare() after each send (the flight loop): the layer's record of a command
-        # then waits for it (or for the next step, reset or idle).
+        self._layer_input: tuple[Any, ...] | None = None  # before_solve's pose, until prepare()
+        self._layer_version: int | None = None  # the model version the layer last learned beside
+        self._prepared_flown: Any = None  # the next tick's MPC residual (model + layer), put together after the send
+        # Set by a caller that calls prepare() after each send (the flight loop): the layer's update from the pose
+        # and its record of the command then wait for it (or for the next step, reset or idle).
         self.prepares_after_send = False
 
     @property
@@ -216,7 +220,7 @@ class Controller:
         stays current, but the geometric law flies, less the layer's offset, tilted up to this many degrees
         (see ``_brake``).
         """
-        self._record_command()
+        self._flush_layer()
         obs = state if observed is None else observed
         start = time.perf_counter()
         if self._ground_z is None:
@@ -225,11 +229,14 @@ class Controller:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
         adapt = self.adaptation
-        if adapt is not None:
-            adapt.before_solve(t, obs, pose_fresh, phase, self.model)
+        # After the send, unless the model changed since the last preparation: the layer sees a swap before the
+        # solve flies the new model (its re-base), so such a tick learns inside, as an unsplit one does.
+        defer = adapt is not None and self.prepares_after_send and self._model_version() == self._layer_version
+        if adapt is not None and not defer:
+            self._learn(t, obs, pose_fresh, phase)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
         acc, ok, solve_s, source, status, model_residual = self._acceleration(
-            state, ref, force_fallback or brake_tilt_deg is not None, thrust_limit)
+            state, ref, force_fallback or brake_tilt_deg is not None, thrust_limit, defer)
         settings = self.settings
         if brake_tilt_deg is not None:
             acc, ok, source, status = self._brake(state, ref), True, "brake", "ok"
@@ -242,8 +249,10 @@ class Controller:
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, settings)
         if adapt is not None:
             self._command_flown = (np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
-            if not self.prepares_after_send:
-                self._record_command()
+            if defer:
+                self._layer_input = (t, obs, pose_fresh, phase)
+            elif not self.prepares_after_send:
+                self._flush_layer()
         if self.fall_guard is not None:
             self.fall_guard.sent(setpoint.thrust * self.vehicle.newton_per_cmd)
         # From the command actually sent, on every path: a cut tick's motion is the limit's, not the model's.
@@ -269,15 +278,32 @@ class Controller:
             observer.on_tick(info)
 
     def prepare(self) -> None:
-        """After the send: the next tick's work that needs no new pose. The fast layer records the command just
-        flown, and the model is linearised at the plan just solved (the next tick's nodes; not for a model that
-        takes the neighbour's moving position). ``step`` flies the result if no swap came between."""
-        self._record_command()
+        """After the send: the next tick's work that waits for no new pose. The fast layer learns from the pose
+        just flown and records the command sent; the model is linearised at the plan just solved (the next
+        tick's nodes; not for a model that takes the neighbour's moving position), and the MPC's residual put
+        together with the layer's part. ``step`` flies them if no swap came between."""
+        self._flush_layer()
         nodes = plan_nodes(self._x_pred, self._u_pred) if self.model is not None else None
-        self._prepared = self.model.prepare(*nodes) if nodes is not None else None  # type: ignore[union-attr]
+        prepared = self.model.prepare(*nodes) if nodes is not None else None  # type: ignore[union-attr]
+        self._prepared = prepared
+        adapt = self.adaptation
+        self._prepared_flown = None
+        if prepared is not None and adapt is not None and self.prepares_after_send:
+            self._prepared_flown = adapt.residual(prepared.residual, self.settings.horizon)
 
-    def _record_command(self) -> None:
-        """The fast layer's record of the last command (``after_command``), once."""
+    def _model_version(self) -> int:
+        return self.model.version if self.model is not None else 0
+
+    def _learn(self, t: float, obs: State, pose_fresh: bool, phase: str) -> None:
+        """The layer's update from the pose at ``t`` (``before_solve``), beside the model flying now."""
+        self._layer_version = self._model_version()
+        self.adaptation.before_solve(t, obs, pose_fresh, phase, self.model)  # type: ignore[union-attr]
+
+    def _flush_layer(self) -> None:
+        """What the layer was left by the last step, once: its update from that pose, then the command sent."""
+        pending, self._layer_input = self._layer_input, None
+        if pending is not None and self.adaptation is not None:
+            self._learn(*pending)
         flown, self._command_flown = self._command_flown, None
         if flown is not None and self.adaptation is not None:
             self.adaptation.after_command(*flown)
@@ -285,12 +311,12 @@ class Controller:
     def reset(self) -> None:
         """Forget the warm start and the adaptation (after flying blind, or any gap in the controller's ticks)."""
         self._x_pred = self._u_pred = None
-        self._prepared = None
+        self._prepared = self._prepared_flown = None
         self.idle()
 
     def idle(self) -> None:
         """A tick someone else flew (motors off, waiting for a pose): the adaptation starts over."""
-        self._record_command()
+        self._flush_layer()
         if self.adaptation is not None:
             self.adaptation.off_air()
         if self.fall_guard is not None:
@@ -305,21 +331,27 @@ class Controller:
         above = float(state.p[2]) - float(ref.p[0][2])
         return self.fall_guard.engaged(state, float(ref.v[0][2]), airborne, above)
 
-    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool,
-                      thrust_limit: float) -> tuple[Any, ...]:
-        """(acc, ok, solve time, source, status, the model's own residual linearisation or None)."""
+    def _acceleration(self, state: State, ref: RefSamples, force_fallback: bool, thrust_limit: float,
+                      prepared_layer: bool = False) -> tuple[Any, ...]:
+        """(acc, ok, solve time, source, status, the model's own residual linearisation or None).
+        ``prepared_layer``: the layer learned nothing inside this tick, so a residual put together after the
+        last send still holds with the prepared linearisation."""
         if self.solver is None:
             return self._geometric(state, ref), True, 0.0, "geometric", "ok", None
         x0 = np.concatenate((state.p, state.v))
-        model_residual = None
+        model_residual = residual = None
         prepared, self._prepared = self._prepared, None
+        flown, self._prepared_flown = self._prepared_flown, None
         if prepared is not None and self.model is not None and self.model.holds(prepared):
             model_residual = prepared.residual
+            if prepared_layer and flown is not None:
+                residual = flown
         elif self.model is not None:
             model_residual = self.model.residual(*linearisation_points(x0, ref.a, self._x_pred, self._u_pred))
-        residual = model_residual
-        if self.adaptation is not None:
-            residual = self.adaptation.residual(model_residual, self.settings.horizon)
+        if residual is None:
+            residual = model_residual
+            if self.adaptation is not None:
+                residual = self.adaptation.residual(model_residual, self.settings.horizon)
         sol = self.solver.solve(x0, MpcParameters(ref, residual, thrust_limit))
         self._x_pred, self._u_pred = (sol.x_pred, sol.u_pred) if sol.ok else (None, None)
         late = force_fallback or (self.deadline_s is not None and sol.solve_time > self.deadline_s)

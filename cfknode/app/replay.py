@@ -172,6 +172,7 @@ def replay_log(
         raise ReplayError("--model needs the MPC controller (controller.kind mpc), the log flew geometric")
     slot = ModelSlot(model, version=1) if model is not None else None
     controller = Controller(ctrl, cfg.vehicle, model=slot)
+    controller.prepares_after_send = True  # as the flight loop: prepare() after each controller tick
     if trajectory is None:
         trajectory = make_trajectory(cfg.trajectory, np.asarray(cfg.sim.initial_position, dtype=float))
 
@@ -202,6 +203,7 @@ def replay_log(
         command = controller.step(t, est, ref, force_fallback=source == "fallback",
                                   pose_fresh=bool(state.get("fresh", True)), phase=str(state.get("phase") or "TRACK"),
                                   brake_tilt_deg=cfg.safety.fence_brake_tilt_deg if source == "brake" else None)
+        controller.prepare()
         followed += source == "fallback" and command.status == "deadline"
         acc, sp = command.acc, command.setpoint
         rows_t.append(t)
