@@ -397,7 +397,7 @@ class _Loop:
             for observer in self.observers:
                 observer.on_tick(info)
         if tick.action is FLY and not self.controller_failed:
-            try:  # the next tick's work that needs no pose, outside this tick's compute (controller.py)
+            try:  # the next tick's work that waits for no new pose, outside this tick's compute (controller.py)
                 controller.prepare()
             except Exception as exc:  # noqa: BLE001 - the model's linearisation, as inside the tick
                 self.controller_failed = True

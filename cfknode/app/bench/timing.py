@@ -55,7 +55,8 @@ def synthetic_queue(hidden: tuple[int, ...], n_networks: int, seed: int = 0) -> 
 
 def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, seconds: float) -> tuple[Timing, ...]:
     """Solve time, the control step's time (solve + Mellinger layer: what a pose waits for), and the preparation's
-    after the send (the next tick's linearisation), of the controller in a 400 Hz closed loop on a circle.
+    after the send (the fast layer's update, the next tick's linearisation), of the controller in a 400 Hz
+    closed loop on a circle.
 
     The plant is the double integrator plus the same residual the MPC is given, so the loop
     tracks and the solver works on realistic warm starts.
@@ -89,7 +90,8 @@ def mpc_closed_loop(cfg: Config, mpc: TranslationalMpc, slot: ModelSlot | None, 
         x = rk4_step(plant, x, command.acc, tc)
     label = f"{mpc.backend}{' + KNODE x' + str(queue.n_networks) if queue is not None else ''}"
     return (Timing.of(f"MPC solve, {label}", solve), Timing.of(f"control step, {label}", total),
-            Timing.of(f"after the send, {label}", prepare, note="the next tick's linearisation (controller.prepare)"))
+            Timing.of(f"after the send, {label}", prepare,
+                      note="the layer's update, the next tick's linearisation (controller.prepare)"))
 
 
 class _TimedLayer:
