@@ -13,7 +13,8 @@ A tick splits as a real-time iteration does: a caller that sets ``prepares_after
 ``prepare()`` after each send, which does the next tick's work that waits for no new pose, so that the pose's
 next command waits only for the solve. The fast layer learns from the pose just flown and records the command
 sent; the model is linearised at the plan just solved; the MPC's residual is put together. The next command then
-flies the layer's estimate from the pose before (2.5 ms older at 400 Hz, docs/design.md#the-tick-in-two-phases).
+flies the layer's estimate from the pose before (2.5 ms older at 400 Hz), except where the layer must learn
+first: a new accelerometer sample, a swapped model (docs/design.md#the-tick-in-two-phases).
 """
 
 from __future__ import annotations
@@ -169,6 +170,7 @@ class Controller:
         self._prepared: PreparedResidual | None = None  # the next tick's linearisation, done after the send
         self._command_flown: tuple[Any, ...] | None = None  # after_command's arguments, until prepare()
         self._layer_input: tuple[Any, ...] | None = None  # before_solve's pose, until prepare()
+        self._imu_seen = -math.inf  # the newest accelerometer sample a step was given
         self._layer_version: int | None = None  # the model version the layer last learned beside
         self._prepared_flown: Any = None  # the next tick's MPC residual (model + layer), put together after the send
         # Set by a caller that calls prepare() after each send (the flight loop): the layer's update from the pose
@@ -229,9 +231,7 @@ class Controller:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
         adapt = self.adaptation
-        # After the send, unless the model changed since the last preparation: the layer sees a swap before the
-        # solve flies the new model (its re-base), so such a tick learns inside, as an unsplit one does.
-        defer = adapt is not None and self.prepares_after_send and self._model_version() == self._layer_version
+        defer = adapt is not None and self._learns_after_send(obs)
         if adapt is not None and not defer:
             self._learn(t, obs, pose_fresh, phase)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
@@ -290,6 +290,18 @@ class Controller:
         self._prepared_flown = None
         if prepared is not None and adapt is not None and self.prepares_after_send:
             self._prepared_flown = adapt.residual(prepared.residual, self.settings.horizon)
+
+    def _learns_after_send(self, obs: State) -> bool:
+        """Whether the layer learns from this pose after the send (``prepares_after_send``). Not on a tick with a
+        new accelerometer sample: a step it sees (a payload, lost thrust) acts on this tick's command; learned a
+        tick later, the thrust-limit cell's horizontal peak error doubled (docs/design.md#the-tick-in-two-phases).
+        Not when the model changed since the last preparation: the layer re-bases on a swap before the solve
+        flies the new model."""
+        imu = getattr(obs, "imu", None)
+        new_imu = imu is not None and imu.t > self._imu_seen
+        if new_imu:
+            self._imu_seen = imu.t
+        return self.prepares_after_send and not new_imu and self._model_version() == self._layer_version
 
     def _model_version(self) -> int:
         return self.model.version if self.model is not None else 0

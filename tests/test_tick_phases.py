@@ -14,6 +14,7 @@ from cfknode.flight.controller import Controller
 from cfknode.flight.estimator import StateEstimate
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.trajectory import Circle
+from cfknode.kernel.imu import ImuSample
 from cfknode.kernel.setpoint import read_setpoint
 
 
@@ -43,10 +44,11 @@ class Flight:
     rebases: list[int]  # the layer's re-bases after each step
 
 
-def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None) -> Flight:
+def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_every: int = 0) -> Flight:
     """A point mass 1.2x heavier than the controller believes, flown with the layer and a three-network queue;
     ``split``: the controller is told its caller prepares after each send, and it does. ``swap_at``: the tick
-    before which another queue swaps in (after the previous tick's preparation)."""
+    before which another queue swaps in (after the previous tick's preparation). ``imu_every``: an
+    accelerometer sample every that many ticks (0: none)."""
     cfg = load_config()
     ctrl = dataclasses.replace(cfg.controller, codegen=False, adaptation="dob")
     vehicle, dt = cfg.vehicle, 1.0 / ctrl.rate_hz
@@ -68,13 +70,16 @@ def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None) -> Fligh
     circle = Circle(radius=0.5, speed=0.4, height=1.0)
     start = circle.sample(np.zeros(1))
     p, v, q = start.p[0].copy(), start.v[0].copy(), np.array([1.0, 0.0, 0.0, 0.0])
+    imu = None
     out = Flight([], [], counts, learned, [], [], [])
     for k in range(int(round(seconds / dt))):
         t = k * dt
         if k == swap_at:
             slot.swap(queues[1], version=2, now=t)
         phase[0] = "step"
-        command = controller.step(t, StateEstimate(t, p, v, q, 0.0), circle)
+        if imu_every and k % imu_every == 0:
+            imu = ImuSample(t, np.array([0.0, 0.0, vehicle.gravity]))
+        command = controller.step(t, StateEstimate(t, p, v, q, 0.0, imu=imu), circle)
         out.acc.append(command.acc)
         out.thrust.append(command.setpoint.thrust)
         out.flown.append(command.layer)
@@ -108,6 +113,14 @@ def test_a_split_tick_learns_after_the_send_and_flies_the_estimate_from_the_pose
     np.testing.assert_allclose(split.acc, together.acc, atol=0.1)
     np.testing.assert_allclose(split.acc[40:], together.acc[40:], atol=0.01)
     assert np.max(np.abs(split.thrust - together.thrust)) <= 0.01 * np.max(together.thrust)
+
+
+def test_a_tick_with_a_new_accelerometer_sample_learns_inside() -> None:
+    """A step the accelerometer sees acts on that tick's command; the ticks between samples learn after."""
+    ticks = 240
+    split = _fly(split=True, imu_every=4)
+    assert split.learned == {"step": ticks // 4, "prepare": ticks - ticks // 4}
+    assert split.linearised == {"step": 1, "prepare": ticks}
 
 
 def test_a_swap_after_the_preparation_is_learned_beside_inside_the_tick() -> None:
