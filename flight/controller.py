@@ -231,7 +231,7 @@ class Controller:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
         adapt = self.adaptation
-        defer = adapt is not None and self._learns_after_send(obs)
+        defer = adapt is not None and self._learns_after_send(self._new_sample(obs))
         if adapt is not None and not defer:
             self._learn(t, obs, pose_fresh, phase)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
@@ -291,17 +291,21 @@ class Controller:
         if prepared is not None and adapt is not None and self.prepares_after_send:
             self._prepared_flown = adapt.residual(prepared.residual, self.settings.horizon)
 
-    def _learns_after_send(self, obs: State) -> bool:
-        """Whether the layer learns from this pose after the send (``prepares_after_send``). Not on a tick with a
-        new accelerometer sample: a step it sees (a payload, lost thrust) acts on this tick's command; learned a
-        tick later, the thrust-limit cell's horizontal peak error doubled (docs/design.md#the-tick-in-two-phases).
-        Not when the model changed since the last preparation: the layer re-bases on a swap before the solve
-        flies the new model."""
+    def _new_sample(self, obs: State) -> bool:
+        """Whether ``obs`` carries an accelerometer sample newer than any step was given (then remembered)."""
         imu = getattr(obs, "imu", None)
-        new_imu = imu is not None and imu.t > self._imu_seen
-        if new_imu:
-            self._imu_seen = imu.t
-        return self.prepares_after_send and not new_imu and self._model_version() == self._layer_version
+        if imu is None or imu.t <= self._imu_seen:
+            return False
+        self._imu_seen = imu.t
+        return True
+
+    def _learns_after_send(self, new_sample: bool) -> bool:
+        """Whether the layer learns from this pose after the send (``prepares_after_send``). Not on a tick with a
+        ``new_sample`` from the accelerometer: a step it sees (a payload, lost thrust) acts on this tick's command;
+        learned a tick later, the thrust-limit cell's horizontal peak error doubled
+        (docs/design.md#the-tick-in-two-phases). Not when the model changed since the last preparation: the layer
+        re-bases on a swap before the solve flies the new model."""
+        return self.prepares_after_send and not new_sample and self._model_version() == self._layer_version
 
     def _model_version(self) -> int:
         return self.model.version if self.model is not None else 0
