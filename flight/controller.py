@@ -33,7 +33,7 @@ from cfknode.flight.fall_guard import FallGuard, FallGuardSettings, guard_accele
 from cfknode.flight.geometric import GeometricGains, geometric_acc
 from cfknode.flight.mellinger import CommandShaping, command_saturated, force_to_setpoint, shape_force
 from cfknode.flight.model_slot import ModelSlot, PreparedResidual, linearisation_points, plan_nodes
-from cfknode.flight.mpc_problem import MpcParameters
+from cfknode.flight.mpc_problem import MpcParameters, ResidualLinearisation
 from cfknode.flight.settings import ControllerConfig
 from cfknode.flight.solver_stats import SolverStats
 from cfknode.kernel.reference import RefSamples
@@ -172,7 +172,7 @@ class Controller:
         self._layer_input: tuple[Any, ...] | None = None  # before_solve's pose, until prepare()
         self._imu_seen = -math.inf  # the newest accelerometer sample a step was given
         self._layer_version: int | None = None  # the model version the layer last learned beside
-        self._prepared_flown: Any = None  # the next tick's MPC residual (model + layer), put together after the send
+        self._prepared_flown: ResidualLinearisation | None = None  # the next tick's MPC residual (model + layer)
         # Set by a caller that calls prepare() after each send (the flight loop): the layer's update from the pose
         # and its record of the command then wait for it (or for the next step, reset or idle).
         self.prepares_after_send = False
