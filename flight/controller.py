@@ -231,7 +231,7 @@ class Controller:
             self.publish()
         ref = reference if isinstance(reference, RefSamples) else reference.sample(self.preview_times(t))
         adapt = self.adaptation
-        defer = adapt is not None and self._learns_after_send(self._new_sample(obs))
+        defer = adapt is not None and self._learns_after_send(t, obs)
         if adapt is not None and not defer:
             self._learn(t, obs, pose_fresh, phase)
         thrust_limit = adapt.f_max() if adapt is not None else math.inf
@@ -299,13 +299,16 @@ class Controller:
         self._imu_seen = imu.t
         return True
 
-    def _learns_after_send(self, new_sample: bool) -> bool:
-        """Whether the layer learns from this pose after the send (``prepares_after_send``). Not on a tick with a
-        ``new_sample`` from the accelerometer: a step it sees (a payload, lost thrust) acts on this tick's command;
-        learned a tick later, the thrust-limit cell's horizontal peak error doubled
-        (docs/design.md#the-tick-in-two-phases). Not when the model changed since the last preparation: the layer
-        re-bases on a swap before the solve flies the new model."""
-        return self.prepares_after_send and not new_sample and self._model_version() == self._layer_version
+    def _learns_after_send(self, t: float, obs: State) -> bool:
+        """Whether the layer learns from this pose after the send (``prepares_after_send``). Not when the model
+        changed since the last preparation: the layer re-bases on a swap before the solve flies the new model.
+        Not for a new accelerometer sample the layer must act on now (``needs_sample_now``: a step's alarm, a
+        step being tracked): the radio sends one tick's command in four, and a step learned after that send
+        reaches the motors a slot later (docs/design.md#the-tick-in-two-phases)."""
+        new_sample = self._new_sample(obs)
+        if not self.prepares_after_send or self._model_version() != self._layer_version:
+            return False
+        return not (new_sample and self.adaptation.needs_sample_now(t, obs))  # type: ignore[union-attr]
 
     def _model_version(self) -> int:
         return self.model.version if self.model is not None else 0

@@ -202,6 +202,28 @@ def test_the_step_estimate_from_samples_takes_their_usual_offset_off() -> None:
     assert abs(det.theta() - 0.75) < 0.02
 
 
+def test_the_detector_tells_ahead_which_sample_raises_an_alarm_and_changes_nothing_by_it() -> None:
+    """``would_alarm`` is what the controller asks before the solve: it must agree with ``sample`` on every
+    sample (one far out, two beyond on one side, noise, the warm-up), and leave the detector as it was."""
+    from cfknode.flight.adaptation import ImuStepDetector
+
+    rng = np.random.default_rng(1)
+    det = ImuStepDetector()
+    thetas = 1.0 + 0.01 * rng.standard_normal(400)
+    thetas[150] = 0.7  # one far out: an alarm on its own
+    thetas[250:252] = 1.08  # two at 8 standard deviations on one side: the second raises it
+    thetas[320] = 1.08  # one at 8 alone, then back: pending, no alarm
+    said, raised = [], []
+    for i, theta in enumerate(thetas):
+        before = (det._n, det._bias, det._var, det._pending, det.alarms)
+        said.append(det.would_alarm(float(theta), 1.0))
+        assert (det._n, det._bias, det._var, det._pending, det.alarms) == before
+        raised.append(det.sample(0.01 * i, float(theta), 1.0, False) is not None)
+    assert said == raised
+    assert [i for i, r in enumerate(raised) if r] == [150, 251]
+    assert not det.would_alarm(float("nan"), 1.0) and not ImuStepDetector().would_alarm(0.5, 1.0)  # warm-up
+
+
 def test_the_accelerometer_vetoes_a_glitch_and_sees_a_step_inside_the_frames_hold() -> None:
     """A mocap glitch raises the frames' alarm; the accelerometer feels nothing, so no step is fitted. And a
     real step 70 ms later, inside that alarm's hold, is seen by the accelerometer with its own onset (the

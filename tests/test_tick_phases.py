@@ -42,19 +42,24 @@ class Flight:
     flown: list[Any]  # the layer's estimate each command flew (Command.layer)
     after_prepare: list[Any]  # the layer's estimate after each preparation (split only)
     rebases: list[int]  # the layer's re-bases after each step
+    inside: list[int]  # the ticks whose pose the layer learned inside the step
 
 
-def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_every: int = 0) -> Flight:
+def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_every: int = 0,
+         mass_step: tuple[int, float] | None = None) -> Flight:
     """A point mass 1.2x heavier than the controller believes, flown with the layer and a three-network queue;
     ``split``: the controller is told its caller prepares after each send, and it does. ``swap_at``: the tick
     before which another queue swaps in (after the previous tick's preparation). ``imu_every``: an
-    accelerometer sample every that many ticks (0: none)."""
+    accelerometer sample (the specific force the thrust gives) every that many ticks (0: none). ``mass_step``:
+    (tick, factor): from that tick the mass is ``factor`` times the believed one."""
     cfg = load_config()
     ctrl = dataclasses.replace(cfg.controller, codegen=False, adaptation="dob")
     vehicle, dt = cfg.vehicle, 1.0 / ctrl.rate_hz
     counts: dict[str, int] = {}
     learned: dict[str, int] = {}
     phase = ["step"]
+    tick = [0]
+    inside: list[int] = []
     queues = [CountingModel(synthetic_queue(cfg.knode.hidden, 3, seed=s), counts, phase) for s in (1, 2)]
     slot = ModelSlot(queues[0], version=1)
     controller = Controller(ctrl, vehicle, model=slot, ground_z=0.0)
@@ -64,6 +69,8 @@ def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_ever
 
     def counted(*args: Any) -> Any:
         learned[phase[0]] = learned.get(phase[0], 0) + 1
+        if phase[0] == "step":
+            inside.append(tick[0])
         return before_solve(*args)
 
     layer.before_solve = counted  # type: ignore[union-attr]
@@ -71,14 +78,17 @@ def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_ever
     start = circle.sample(np.zeros(1))
     p, v, q = start.p[0].copy(), start.v[0].copy(), np.array([1.0, 0.0, 0.0, 0.0])
     imu = None
-    out = Flight([], [], counts, learned, [], [], [])
+    out = Flight([], [], counts, learned, [], [], [], inside)
+    mass, specific_force = 1.2 * vehicle.mass, vehicle.gravity
     for k in range(int(round(seconds / dt))):
-        t = k * dt
+        t, tick[0] = k * dt, k
+        if mass_step is not None and k == mass_step[0]:
+            mass = mass_step[1] * vehicle.mass
         if k == swap_at:
             slot.swap(queues[1], version=2, now=t)
         phase[0] = "step"
         if imu_every and k % imu_every == 0:
-            imu = ImuSample(t, np.array([0.0, 0.0, vehicle.gravity]))
+            imu = ImuSample(t, np.array([0.0, 0.0, specific_force]))
         command = controller.step(t, StateEstimate(t, p, v, q, 0.0, imu=imu), circle)
         out.acc.append(command.acc)
         out.thrust.append(command.setpoint.thrust)
@@ -92,7 +102,8 @@ def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_ever
         q = np.array(target.quaternion)
         body_z = np.array([2 * (q[1] * q[3] + q[0] * q[2]), 2 * (q[2] * q[3] - q[0] * q[1]),
                            1 - 2 * (q[1] ** 2 + q[2] ** 2)])
-        v = v + dt * (target.thrust_n / (1.2 * vehicle.mass) * body_z - [0.0, 0.0, vehicle.gravity])
+        specific_force = target.thrust_n / mass
+        v = v + dt * (specific_force * body_z - [0.0, 0.0, vehicle.gravity])
         p = p + dt * v
     out.acc, out.thrust = np.array(out.acc), np.array(out.thrust)
     return out
@@ -115,12 +126,25 @@ def test_a_split_tick_learns_after_the_send_and_flies_the_estimate_from_the_pose
     assert np.max(np.abs(split.thrust - together.thrust)) <= 0.01 * np.max(together.thrust)
 
 
-def test_a_tick_with_a_new_accelerometer_sample_learns_inside() -> None:
-    """A step the accelerometer sees acts on that tick's command; the ticks between samples learn after."""
-    ticks = 240
-    split = _fly(split=True, imu_every=4)
-    assert split.learned == {"step": ticks // 4, "prepare": ticks - ticks // 4}
-    assert split.linearised == {"step": 1, "prepare": ticks}
+def test_a_quiet_accelerometer_sample_waits_for_the_send_and_a_step_it_shows_does_not() -> None:
+    """A sample that raises no alarm only teaches the step detector its noise: it is learned after the send. A
+    sample that shows a step acts on its own tick's command, and so do the samples while the step is tracked."""
+    every, step = 4, 600
+    split = _fly(split=True, seconds=2.0, imu_every=every, mass_step=(step, 1.6))
+    together = _fly(split=False, seconds=2.0, imu_every=every, mass_step=(step, 1.6))
+    inside = np.array(split.inside)
+    assert inside[0] == 0  # the first tick: nothing learned before it
+    quiet = inside[(inside > 0) & (inside < step)]
+    assert quiet.size == 0, quiet  # 150 samples before the step, none learned inside
+    shown = inside[inside >= step]
+    assert shown.size and shown[0] <= step + 2 * every  # the step's first or second sample raised the alarm
+    assert all(k % every == 0 for k in shown)  # only ticks with a sample: between them the layer learns after
+    # The tick whose command first flies the step's mass is the same as learning every pose inside gives.
+    scale = np.array([e.thrust_scale for e in together.flown])
+    first = step + int(np.argmax(scale[step:] > scale[step - 1] + 0.1))
+    assert first in shown
+    assert abs(split.flown[first].thrust_scale - scale[first]) < 0.01
+    assert split.flown[first - 1].thrust_scale < scale[step - 1] + 0.1
 
 
 def test_a_swap_after_the_preparation_is_learned_beside_inside_the_tick() -> None:

@@ -58,12 +58,11 @@ class ImuStepDetector:
             return None
         z = (e - self._bias) / self.noise
         pending = self._pending
-        first: float | None = None
-        if abs(z) > ALARM_SINGLE:
-            first, post = t, [theta_meas - self._bias]
-        elif abs(z) > ALARM and pending is not None and pending[2] * z > 0.0:
-            first, post = pending[0], [pending[1] - self._bias, theta_meas - self._bias]
-        if first is not None:
+        if self._raises(z):
+            if abs(z) > ALARM_SINGLE or pending is None:
+                first, post = t, [theta_meas - self._bias]
+            else:
+                first, post = pending[0], [pending[1] - self._bias, theta_meas - self._bias]
             # The step came between the last sample that did not deviate and the first that did.
             onset = first if self._quiet_t is None else 0.5 * (self._quiet_t + first)
             self._onset = onset
@@ -77,6 +76,18 @@ class ImuStepDetector:
         self._pending = None
         self._learn(t, e)
         return None
+
+    def would_alarm(self, theta_meas: float, theta_now: float) -> bool:
+        """Whether ``sample`` would raise an alarm for this sample, no step being tracked. Reads, changes nothing:
+        a sample that raises none only teaches the noise level, which can wait."""
+        if not math.isfinite(theta_meas) or theta_meas <= 0.0 or self._n < WARMUP_SAMPLES:
+            return False
+        return self._raises((theta_meas - theta_now - self._bias) / self.noise)
+
+    def _raises(self, z: float) -> bool:
+        """A deviation of ``z`` standard deviations raises an alarm: far beyond, or beyond on the pending's side."""
+        pending = self._pending
+        return abs(z) > ALARM_SINGLE or (abs(z) > ALARM and pending is not None and pending[2] * z > 0.0)
 
     def _learn(self, t: float, e: float) -> None:
         self._quiet_t = t

@@ -283,6 +283,13 @@ class FastAdaptation:
             return True
         return stepping
 
+    def needs_sample(self, t: float, theta: float) -> bool:
+        """Whether an accelerometer sample of ``theta`` (``LoopExtras.imu_theta``) changes this tick's estimate: a
+        step is tracked (its samples set the mass), or the sample raises a step's alarm. Reads, changes nothing."""
+        if not (self.s.enabled and self.s.mode == "dob" and self.s.step_threshold > 0.0):
+            return False
+        return self.tracker.tracking(t) or self._imu.would_alarm(theta, 1.0 / self.estimate.thrust_scale)
+
     def _imu_sample(self, t: float, t_sample: float, theta: float) -> None:
         """An accelerometer sample: a step it sees starts the step's tracking at once, from its onset. A hold the
         frames' detector raised does not stop it: that alarm can be a false one just before a real step (a

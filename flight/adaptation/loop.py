@@ -156,28 +156,43 @@ class LoopAdaptation:
         if imu is None or imu.t <= self._imu_t or not self._acting_recent:
             return None
         self._imu_t = imu.t
-        thrust = self._acting_recent[0][1]
-        for t, value in self._acting_recent:  # the thrust of the tick the sample fell in
-            if t > imu.t:
-                break
-            thrust = value
-        if thrust <= 0.0:
+        thrust = self._thrust_at(imu.t)
+        if thrust is None or thrust <= 0.0:
             return None
         e = self.layer.estimate
         self.lags.observe_specific_force(float(imu.specific_force[2]), 1.0 / e.thrust_scale, self.vehicle.mass,
                                          learn=not (e.stepping or self._sat[0]))
         return imu.t, float(imu.specific_force[2]) * self.vehicle.mass / thrust
 
-    def _thrust_at(self, t: float) -> float | None:
-        """The acting thrust (N) of the tick a sample at ``t`` fell in; None before any."""
-        if not self._acting_recent:
-            return None
-        thrust = self._acting_recent[0][1]
-        for tick, value in self._acting_recent:
-            if tick > t:
-                break
-            thrust = value
-        return thrust
+    def needs_sample_now(self, now: float, est: Any) -> bool:
+        """Whether ``est``'s accelerometer sample must be learned before this tick's solve: a step is being
+        tracked (its samples set the mass), the sample raises a step's alarm, or the fast path (accel_path.py)
+        moves with every sample. Any other sample only teaches the step detector its noise level and the bank
+        its lag, which can wait for the send. Reads, changes nothing."""
+        if self._accel_tuning is not None or self._ground is None:
+            return True
+        imu = getattr(est, "imu", None)
+        if imu is None or imu.t <= self._imu_t or not self._have_command:
+            return False
+        if float(est.p[2]) <= self._ground + GROUND_MARGIN:  # on the floor the layer does not read samples
+            return False
+        acting = self.lags.acting()
+        thrust = self._thrust_at(imu.t, (now, acting) if acting is not None else None)
+        if thrust is None or thrust <= 0.0:
+            return False
+        return self.layer.needs_sample(now, float(imu.specific_force[2]) * self.vehicle.mass / thrust)
+
+    def _thrust_at(self, t: float, newest: tuple[float, float] | None = None) -> float | None:
+        """The acting thrust (N) of the tick a sample at ``t`` fell in: the newest tick at or before it (the
+        oldest kept, for an older sample); ``newest``: a (tick, thrust) not yet recorded. None before any."""
+        if newest is not None and newest[0] <= t:
+            return newest[1]
+        for tick, value in reversed(self._acting_recent):  # a sample is from the last few ticks: search back
+            if tick <= t:
+                return value
+        if self._acting_recent:
+            return self._acting_recent[0][1]
+        return newest[1] if newest is not None else None
 
     def _accel_part(self, now: float, est: Any, airborne: bool, predicted: np.ndarray) -> np.ndarray | None:
         """The accelerometer fast path's part this tick (accel_path.py), None when it is off, on the ground, or

@@ -45,6 +45,11 @@ class OracleAdaptation:
     def off_air(self) -> None:
         """Nothing to forget: the next tick reads the true mass again."""
 
+    def needs_sample_now(self, now: float, est: Any) -> bool:
+        """The oracle reads the true mass on each accelerometer sample's tick before the solve, as the layer it
+        stands in for learns a step there."""
+        return True
+
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
         self._heard.append((now, float(self._true_mass())))
         while len(self._heard) > 1 and self._heard[1][0] <= now - self._delay + 1e-9:

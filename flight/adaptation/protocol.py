@@ -31,6 +31,8 @@ class AdaptationLayer(Protocol):
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate: ...
 
+    def needs_sample_now(self, now: float, est: Any) -> bool: ...
+
     def f_max(self) -> float: ...
 
     def residual(self, model_residual: ResidualLinearisation | None,
@@ -62,6 +64,10 @@ class NoAdaptation:
 
     def before_solve(self, now: float, est: Any, pose_fresh: bool, state: str, model: Any) -> AdaptationEstimate:
         return self._estimate
+
+    def needs_sample_now(self, now: float, est: Any) -> bool:
+        """Nothing learned: no sample is needed before the solve."""
+        return False
 
     def f_max(self) -> float:
         """Specific thrust at the clamp [m/s^2] for the nominal mass."""
