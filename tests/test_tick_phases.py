@@ -46,14 +46,16 @@ class Flight:
 
 
 def _fly(split: bool, seconds: float = 0.6, swap_at: int | None = None, imu_every: int = 0,
-         mass_step: tuple[int, float] | None = None) -> Flight:
+         mass_step: tuple[int, float] | None = None, accel_hz: float = 0.0) -> Flight:
     """A point mass 1.2x heavier than the controller believes, flown with the layer and a three-network queue;
     ``split``: the controller is told its caller prepares after each send, and it does. ``swap_at``: the tick
     before which another queue swaps in (after the previous tick's preparation). ``imu_every``: an
     accelerometer sample (the specific force the thrust gives) every that many ticks (0: none). ``mass_step``:
-    (tick, factor): from that tick the mass is ``factor`` times the believed one."""
+    (tick, factor): from that tick the mass is ``factor`` times the believed one. ``accel_hz``: the accelerometer's
+    fast path's cut-off (0: off, the default)."""
     cfg = load_config()
-    ctrl = dataclasses.replace(cfg.controller, codegen=False, adaptation="dob")
+    ctrl = dataclasses.replace(cfg.controller, codegen=False, adaptation="dob", adaptation_settings=dataclasses.replace(
+        cfg.controller.adaptation_settings, accel_cutoff_hz=accel_hz))
     vehicle, dt = cfg.vehicle, 1.0 / ctrl.rate_hz
     counts: dict[str, int] = {}
     learned: dict[str, int] = {}
@@ -145,6 +147,12 @@ def test_a_quiet_accelerometer_sample_waits_for_the_send_and_a_step_it_shows_doe
     assert first in shown
     assert abs(split.flown[first].thrust_scale - scale[first]) < 0.01
     assert split.flown[first - 1].thrust_scale < scale[step - 1] + 0.1
+
+
+def test_with_the_accelerometer_s_fast_path_every_sample_is_learned_inside() -> None:
+    """The fast path adds each sample's residual to this tick's offset: no sample waits for the send."""
+    split = _fly(split=True, seconds=0.4, imu_every=4, accel_hz=2.0)
+    assert split.inside == list(range(0, 160, 4))
 
 
 def test_a_swap_after_the_preparation_is_learned_beside_inside_the_tick() -> None:
