@@ -151,6 +151,8 @@ class Controller:
         self.gains = GeometricGains.from_config(settings, vehicle)
         self.offsets = settings.dt * np.arange(settings.horizon + 1)
         self.observers: list[TickObserver] = []
+        if adaptation is not None:
+            check_layer(adaptation)
         self.adaptation: AdaptationLayer | None = adaptation
         if adaptation is None and settings.adaptation == "oracle":
             if true_mass is None:
@@ -391,3 +393,12 @@ class Controller:
 
     def _geometric(self, state: State, ref: RefSamples) -> np.ndarray:
         return geometric_acc(state.p, state.v, ref.p[0], ref.v[0], ref.a[0], self.gains)
+
+
+def check_layer(layer: Any) -> None:
+    """A layer of one's own must fill the controller's slot (``AdaptationLayer``): one line naming what it lacks,
+    before the flight, rather than an AttributeError in the middle of one."""
+    missing = [name for name in dir(AdaptationLayer) if not name.startswith("_") and not hasattr(layer, name)]
+    if missing:
+        raise TypeError(f"Controller: adaptation {type(layer).__name__} is not an AdaptationLayer: it lacks "
+                        f"{', '.join(missing)} (flight/adaptation/protocol.py)")

@@ -22,6 +22,20 @@ def test_every_layer_fills_the_controllers_slot() -> None:
     assert all(isinstance(layer, AdaptationLayer) for layer in layers)
 
 
+def test_a_layer_of_ones_own_that_lacks_part_of_the_slot_is_refused_before_the_flight() -> None:
+    from types import SimpleNamespace
+
+    import pytest
+
+    cfg = load_config()
+    layer = NoAdaptation(cfg.controller, cfg.vehicle)
+    names = [n for n in dir(AdaptationLayer) if not n.startswith("_") and n != "needs_sample_now"]
+    older = SimpleNamespace(**{n: getattr(layer, n) for n in names})  # a layer written before that question
+    with pytest.raises(TypeError, match="is not an AdaptationLayer: it lacks needs_sample_now"):
+        Controller(cfg.controller, cfg.vehicle, ground_z=0.0, adaptation=older)  # type: ignore[arg-type]
+    Controller(cfg.controller, cfg.vehicle, ground_z=0.0, adaptation=layer)
+
+
 def _fly(adaptation: str, layer: AdaptationLayer | None, seconds: float = 1.0) -> tuple[np.ndarray, list]:
     """A point mass the model matches, on the setpoint's thrust and attitude; the commands and the layer's states."""
     cfg = load_config()
