@@ -120,7 +120,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_thrust_to_weight_cells_set_the_thrust_map": FAST,
     },
     "test_bench_rows.py": FAST,
-    "test_bench_timing.py": FAST,
+    "test_bench_timing.py": {
+        "*": FAST,
+        "test_a_lockstep_flight_splits_its_ticks_by_the_accelerometer_s_samples": FLIES,
+    },
     "test_calibrate.py": {
         "*": FAST,
         "test_calibration_against_the_simulator_finds_the_true_mass": FLIES,

@@ -1,10 +1,14 @@
 """The timing bench's parts measure what they claim (values are not asserted: numbers go in notes)."""
 
 import dataclasses
+import math
 
 import numpy as np
+import pytest
 
-from cfknode.app.bench.timing import Timing, layer_tick, mpc_closed_loop, swap_latency, synthetic_queue
+from cfknode.app.bench.timing import (
+    Timing, layer_tick, lockstep_flight, mpc_closed_loop, over_nominal, swap_latency, synthetic_queue,
+)
 from cfknode.app.config import load_config
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
@@ -40,3 +44,18 @@ def test_the_fast_layer_has_its_own_row_timing_every_call_of_a_tick():
     row = layer_tick(cfg, mpc, seconds=0.1)
     assert row.samples == 40 and row.name.startswith("fast layer")
     assert 0.0 < row.median_ms <= row.max_ms
+
+
+def test_a_lockstep_flight_splits_its_ticks_by_the_accelerometer_s_samples():
+    """The budget over plain MPC is read by kind of tick: the log's 100 Hz samples fall on one tick in four."""
+    f = lockstep_flight(load_config(), None, 1.0, "dob")
+    assert all(math.isfinite(f[k]) and f[k] > 0.0 for k in ("sample_tick_median_ms", "other_tick_median_ms"))
+    assert 0.2 < f["sample_ticks"] / (f["sample_ticks"] + f["other_ticks"]) < 0.3
+
+
+def test_each_flight_is_stated_over_the_nominal_one_in_ms_by_kind_of_tick():
+    keys = ("tick_median_ms", "sample_tick_median_ms", "other_tick_median_ms")
+    flights = {"nominal": dict(zip(keys, (0.35, 0.38, 0.33))), "layer": dict(zip(keys, (0.42, 0.45, 0.40)))}
+    over = over_nominal(flights)
+    assert set(over) == {"layer"}
+    assert over["layer"] == pytest.approx(dict(zip(keys, (0.07, 0.07, 0.07))))
