@@ -14,7 +14,8 @@ A tick splits as a real-time iteration does: a caller that sets ``prepares_after
 next command waits only for the solve. The fast layer learns from the pose just flown and records the command
 sent; the model is linearised at the plan just solved; the MPC's residual is put together. The next command then
 flies the layer's estimate from the pose before (2.5 ms older at 400 Hz), except where the layer must learn
-first: a new accelerometer sample, a swapped model (docs/design.md#the-tick-in-two-phases).
+first: an accelerometer sample that shows a step (or comes while one is tracked), a swapped model
+(docs/design.md#the-tick-in-two-phases).
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 ``Controller`` calls, per tick: ``before_solve`` (read the state, update the estimate) -> ``f_max`` (the
 thrust cone's bound) -> ``residual`` (the MPC's residual with the layer's part added) -> ``shaping`` (what
-the Mellinger layer flies with) -> ``after_command`` (what was flown). ``LoopAdaptation`` (the observer,
+the Mellinger layer flies with) -> ``after_command`` (what was flown). With ``prepares_after_send`` the
+update and the record wait for ``Controller.prepare`` after the send, unless ``needs_sample_now`` says a new
+accelerometer sample must be learned before the solve. ``LoopAdaptation`` (the observer,
 ``loop.py``) and ``OracleAdaptation`` (the true mass, ``oracle.py``) fill it; ``NoAdaptation`` flies the
 model alone through the same path, for an embedder who wants the layer's interface without its estimate.
 With a model flying, ``LoopAdaptation`` also weights the model's residual per axis (``composite.py``): that
