@@ -107,7 +107,7 @@ class LoopAdaptation:
         self._version = version
         if not self._have_command:
             return self.layer.applied
-        airborne = float(est.p[2]) > self._ground + GROUND_MARGIN and state not in _FROZEN_STATES
+        airborne = self._above_floor(est) and state not in _FROZEN_STATES
         self._low = state == "TRACK" and not airborne
         if self.layer.stalled(now):  # a stalled host: the lags start from the new pose too
             self.lags.forget_velocity()
@@ -162,7 +162,7 @@ class LoopAdaptation:
         e = self.layer.estimate
         self.lags.observe_specific_force(float(imu.specific_force[2]), 1.0 / e.thrust_scale, self.vehicle.mass,
                                          learn=not (e.stepping or self._sat[0]))
-        return imu.t, float(imu.specific_force[2]) * self.vehicle.mass / thrust
+        return imu.t, self._theta(imu, thrust)
 
     def needs_sample_now(self, now: float, est: Any) -> bool:
         """Whether ``est``'s accelerometer sample must be learned before this tick's solve: a step is being
@@ -174,13 +174,21 @@ class LoopAdaptation:
         imu = getattr(est, "imu", None)
         if imu is None or imu.t <= self._imu_t or not self._have_command:
             return False
-        if float(est.p[2]) <= self._ground + GROUND_MARGIN:  # on the floor the layer does not read samples
+        if not self._above_floor(est):  # on the floor the layer does not read samples
             return False
         acting = self.lags.acting()
         thrust = self._thrust_at(imu.t, (now, acting) if acting is not None else None)
         if thrust is None or thrust <= 0.0:
             return False
-        return self.layer.needs_sample(now, float(imu.specific_force[2]) * self.vehicle.mass / thrust)
+        return self.layer.needs_sample(now, self._theta(imu, thrust))
+
+    def _above_floor(self, est: Any) -> bool:
+        """Above the floor's margin, where the ground carries none of the weight (the layer learns only there)."""
+        return float(est.p[2]) > self._ground + GROUND_MARGIN  # type: ignore[operator]
+
+    def _theta(self, imu: Any, thrust: float) -> float:
+        """A sample's theta: the specific force along the body axis over the acting ``thrust`` per nominal mass."""
+        return float(imu.specific_force[2]) * self.vehicle.mass / thrust
 
     def _thrust_at(self, t: float, newest: tuple[float, float] | None = None) -> float | None:
         """The acting thrust (N) of the tick a sample at ``t`` fell in: the newest tick at or before it (the
