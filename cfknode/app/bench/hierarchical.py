@@ -23,6 +23,8 @@ from typing import Any
 
 
 CELLS = tuple((r, v) for r in (2.0, 3.0, 4.0) for v in (0.8, 1.0, 1.2))
+# The pattern's length in seconds: the paper's 8 s, and ``--quick``'s one cell of 4 s.
+DURATION_S, QUICK_DURATION_S = 8.0, 4.0
 CONTROLLERS = ("geometric", "nominal", "offline", "online", "dob", "online_dob", "oracle", "oracle_late")
 # Table 1 of the paper, as printed (radius-major), for the bench's comparison column.
 PAPER_ONLINE = dict(zip(CELLS, (0.0660, 0.1113, 0.1678, 0.0657, 0.1043, 0.1554, 0.0709, 0.1092, 0.1571)))
@@ -134,7 +136,7 @@ def run_hierarchical(args: argparse.Namespace, out: Path, version: str) -> int:
     check_latency_arguments(args)
     executor = ExecutorSettings.from_args(args)
     cells = CELLS[:1] if args.quick else parse_cells(getattr(args, "cells", None))
-    duration = 4.0 if args.quick else 8.0
+    duration = QUICK_DURATION_S if args.quick else DURATION_S
     out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-", dir=out))
     command = (f"cfknode bench paper --mode hierarchical{' --quick' if args.quick else ''} {executor.command_flags()} "
