@@ -5,11 +5,12 @@ Each test gets the marks its file (or the test itself) has in ``speeds.SPEEDS``,
 ``xdist_group``, so pytest-xdist keeps a file's module fixtures (one flight, shared by its
 tests) on one worker; files that share something outside the process share a group. The longest
 groups start first (``speeds.LONGEST``), so the two workers end together. Each worker has its own
-runtime and cache directories.
+runtime directory; the workers share one cache directory, where each MPC variant compiles once.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -51,17 +52,22 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | 
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _own_runtime_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A runtime and a cache directory per test process (each xdist worker), which subprocesses inherit.
+def _own_runtime_dir_and_shared_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A runtime directory per test process (each xdist worker), and a cache directory the session's
+    workers share, which subprocesses inherit; neither is the user's own.
 
     Two workers' flights then never share the default e-stop mailbox (``$XDG_RUNTIME_DIR/cfknode``,
-    where a flight claims its robot's name) nor write one compiled MPC library into the shared
-    code-generation cache (``$XDG_CACHE_HOME/cfknode``) at once.
+    where a flight claims its robot's name). They do share the code-generation cache
+    (``$XDG_CACHE_HOME/cfknode``): each MPC variant compiles once a run (about 15 s of gcc), not once a
+    worker. A library lands there by an atomic rename (flight/mpc_codegen.py), so two workers compiling
+    one variant at once each load a complete library.
     """
     root = tmp_path_factory.mktemp("xdg")
-    for name in ("runtime", "cache"):
-        (root / name).mkdir(mode=0o700)
+    (root / "runtime").mkdir(mode=0o700)
+    base = tmp_path_factory.getbasetemp()
+    shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-cache"
+    shared.mkdir(mode=0o700, exist_ok=True)
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("XDG_RUNTIME_DIR", str(root / "runtime"))
-        patch.setenv("XDG_CACHE_HOME", str(root / "cache"))
+        patch.setenv("XDG_CACHE_HOME", str(shared))
         yield root
