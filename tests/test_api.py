@@ -133,7 +133,8 @@ def test_the_solver_reports_its_statistics_and_compiles_into_the_configured_cach
 
     from cfknode.flight.mpc import TranslationalMpc
 
-    cfg = load_config(overrides={"controller.cache_dir": str(tmp_path / "cache")})
+    # A short horizon: its C compiles in about 2 s, the default's in 15.
+    cfg = load_config(overrides={"controller.cache_dir": str(tmp_path / "cache"), "controller.horizon": 5})
     mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
     controller = cfknode.Controller(cfg.controller, cfg.vehicle, solver=mpc, ground_z=0.0)
     circle = cfknode.Circle(radius=0.5, speed=0.4, height=1.0)
