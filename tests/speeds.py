@@ -544,9 +544,12 @@ GROUPS: dict[str, str] = {"test_bench_executor.py": "ray", "test_fleet_ray.py": 
 # The groups that take longest, longest first (docs/testing.md#measured): the workers start them before
 # the rest, so neither is left with one of them at the end while the other has nothing to do.
 LONGEST: tuple[str, ...] = (
-    "test_bench_hierarchical.py", "test_bench_paper.py", "ray", "test_faults.py", "test_online_flight.py",
-    "test_fleet_online.py", "test_bench_online.py", "test_learner_with_layer.py", "test_fleet.py",
-    "test_thrust_limit.py", "test_fleet_signals.py", "test_bounded_inputs.py", "test_replay.py", "test_wake_only.py",
+    "test_bench_hierarchical.py", "ray", "test_faults.py", "test_online_flight.py", "test_wake_only.py",
+    "test_bench_paper.py", "test_bench_online.py", "test_flight_sim.py", "test_fleet_online.py",
+    "test_vertical_learning.py", "test_stall_exit.py", "test_thrust_limit.py", "test_bench_learning.py",
+    "test_fleet_neighbour.py", "test_learner_with_layer.py", "test_fleet_stack.py", "test_example.py",
+    "test_online_signals.py", "test_latency.py", "test_adaptation_engage.py", "test_adaptation.py",
+    "test_tick_errors.py", "test_fleet.py", "test_fleet_signals.py",
 )
 
 

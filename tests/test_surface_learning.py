@@ -4,15 +4,12 @@ and flies the cell with a far lower error than the layer alone; seed 0, 4 s of t
 
 from __future__ import annotations
 
-import pytest
-
 from cfknode.app.bench.learning import Job, run_job
 from cfknode.app.bench.learning_cells import CELLS
 
 CELL = next(c for c in CELLS if c.name == "surface h=6 cm v=0.5")
 
 
-@pytest.mark.xdist_group("surface_learning")
 def test_online_learning_beside_the_layer_learns_the_ground_effect_the_held_layer_cannot(tmp_path):
     layer = run_job(Job(CELL, "layer", 0, str(tmp_path), 4.0))
     online = run_job(Job(CELL, "online+layer", 0, str(tmp_path), 4.0))

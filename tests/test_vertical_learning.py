@@ -6,8 +6,6 @@ such couplings refuses it (0.72 of the layer's MSE; docs/results.md)."""
 
 from __future__ import annotations
 
-import pytest
-
 from cfknode.app.bench.learning import Job, run_job
 from cfknode.app.bench.learning_cells import CELLS
 from cfknode.app.config import load_config
@@ -30,7 +28,6 @@ def test_the_defaults_learn_beside_the_layer_from_slow_flight_and_judge_what_fli
     assert cfg.online.gate_layer_min_score == 0.05  # flown on the axes where it removes 5 % of the layer's rest
 
 
-@pytest.mark.xdist_group("vertical_learning")
 def test_online_learning_beside_the_layer_learns_the_climb_rate_term(tmp_path):
     layer = run_job(Job(CELL, "layer", 1, str(tmp_path), 6.0))
     online = run_job(Job(CELL, "online+layer", 1, str(tmp_path), 6.0))
@@ -41,7 +38,6 @@ def test_online_learning_beside_the_layer_learns_the_climb_rate_term(tmp_path):
     assert online.mse < 0.75 * layer.mse, (online.mse, layer.mse)  # 25 % lower at least
 
 
-@pytest.mark.xdist_group("vertical_learning")
 def test_the_faster_oscillation_learns_the_climb_rate_term_against_the_command_as_it_acts(tmp_path):
     """At 0.65 Hz the motors' lag, seen against the command as sent, cancels most of the climb-rate term (the
     layer's ``online.layer_command_lag_s`` records the command as it acts; recorded as sent, this flight kept no network
