@@ -1,9 +1,9 @@
 """`cfknode bench paper --mode hierarchical --quick` keeps working: one cell, every controller, the real stack.
 
 The command runs as a user runs it, on a shorter flight than ``--quick``'s own: 2.5 s of pattern (the mass
-steps at 0.6 s and 1.6 s into it, still several online rounds after each) and a 1.5 s take-off, settle and
-landing, where the bench's own are 4 s and 3 s, 1 s and 3 s. The test checks what the bench wires together, not
-its numbers (docs/results.md has those).
+steps at 0.6 s and 1.6 s into it, still several online rounds after each), a 1.5 s take-off, a 0.5 s settle and
+a 1.5 s landing, where the bench's own are 4 s of pattern, 3 s, 1 s and 3 s. The test checks what the bench wires
+together, not its numbers (docs/results.md has those).
 """
 
 import json
