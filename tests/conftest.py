@@ -58,7 +58,7 @@ def _own_runtime_dir_and_shared_cache(tmp_path_factory: pytest.TempPathFactory) 
 
     Two workers' flights then never share the default e-stop mailbox (``$XDG_RUNTIME_DIR/cfknode``,
     where a flight claims its robot's name). They do share the code-generation cache
-    (``$XDG_CACHE_HOME/cfknode``): each MPC variant compiles once a run (about 15 s of gcc), not once a
+    (``$XDG_CACHE_HOME/cfknode``): each MPC variant compiles once a run (seconds of gcc each), not once a
     worker. A library lands there by an atomic rename (flight/mpc_codegen.py), so two workers compiling
     one variant at once each load a complete library.
     """

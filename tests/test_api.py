@@ -133,7 +133,7 @@ def test_the_solver_reports_its_statistics_and_compiles_into_the_configured_cach
 
     from cfknode.flight.mpc import TranslationalMpc
 
-    # A short horizon: its C compiles in about 2 s, the default's in 15.
+    # A short horizon: its C compiles in about 1.5 s, the default's in about 6.
     cfg = load_config(overrides={"controller.cache_dir": str(tmp_path / "cache"), "controller.horizon": 5})
     mpc = TranslationalMpc(cfg.controller, cfg.vehicle)
     controller = cfknode.Controller(cfg.controller, cfg.vehicle, solver=mpc, ground_z=0.0)

@@ -118,7 +118,7 @@ def test_command_line_with_other_weights_json_and_png(flight_log, tmp_path, caps
     parser = argparse.ArgumentParser()
     replay_command.add_arguments(parser)
     png = tmp_path / "r.png"
-    # In CasADi's VM: other weights are another compiled library, 15 s of gcc for what this test checks.
+    # In CasADi's VM: other weights are another compiled library, seconds of gcc for what this test checks.
     argv = [str(flight_log.path), "--set", "controller.q_position=[20, 20, 30]", "--set", "controller.codegen=false",
             "--json", "--png", str(png)]
     assert replay_command.run(parser.parse_args(argv)) == 0
