@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import AdaptationLayer, LoopAdaptation, NoAdaptation, OracleAdaptation
@@ -23,10 +25,6 @@ def test_every_layer_fills_the_controllers_slot() -> None:
 
 
 def test_a_layer_of_ones_own_that_lacks_part_of_the_slot_is_refused_before_the_flight() -> None:
-    from types import SimpleNamespace
-
-    import pytest
-
     cfg = load_config()
     layer = NoAdaptation(cfg.controller, cfg.vehicle)
     names = [n for n in dir(AdaptationLayer) if not n.startswith("_") and n != "needs_sample_now"]
