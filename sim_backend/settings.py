@@ -85,6 +85,10 @@ class SimConfig:
     aero_terms: AeroTerms = AeroTerms()
     air_model: bool = setting(False,
         doc="fly the MPC with the plant's own air terms as its model: a bench's ceiling for learning (realistic plant)")
+    air_model_from_s: float = setting(0.0, unit="s", low=0, high=3600,
+        doc="flight time the air model starts flying (0: from take-off): what a model arriving then can at best do")
+    air_model_terms: Literal["all", "wake"] = setting("all",
+        doc="all: every air term | wake: the drone above's wake alone, a wake model's ceiling (fleet.neighbour_input)")
 
 
 @dataclass(frozen=True)

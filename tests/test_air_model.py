@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from cfknode.app.config import ConfigError, load_config
-from cfknode.app.mission import build_model_slot
+from cfknode.app.mission import air_model_observers, build_model_slot
 from cfknode.sim_backend.aero import measured_downwash_force_z, rotor_and_ground_force, rotor_speed_ratio
-from cfknode.sim_backend.air_model import AirModel
+from cfknode.sim_backend.air_model import AirModel, SwapAt
 
 CFG = load_config()
 G = CFG.vehicle.gravity
@@ -86,6 +86,8 @@ def test_the_linearisation_is_exact_at_the_nodes_and_close_nearby():
     ({"sim.aero": "ideal"}, "ideal plant"),
     ({"controller.kind": "geometric"}, "geometric"),
     ({"backend": "cf"}, "simulation only"),
+    ({"sim.air_model_terms": "wake"}, "needs a fleet"),  # a single drone has no wake: a zero model
+    ({"sim.air_model_terms": "wake", "fleet.size": 2}, "neighbour_input"),
 ])
 def test_the_air_model_is_refused_where_it_means_nothing(overrides, why):
     cfg = load_config(overrides={"sim.air_model": True, **overrides})
@@ -99,6 +101,44 @@ def test_the_air_model_is_flown_from_the_config():
     assert build_model_slot(load_config()) is None  # off by default: the plain MPC
 
 
+def test_the_air_model_can_arrive_when_a_learner_s_first_model_would():
+    """``sim.air_model_from_s``: the slot flies nothing until then, and the air model from that tick on, once."""
+    cfg = load_config(overrides={"sim.air_model": True, "sim.air_model_from_s": 4.7})
+    slot = build_model_slot(cfg)
+    assert slot is not None and slot.model is None
+    (observer,) = air_model_observers(cfg, slot)
+    assert isinstance(observer, SwapAt)
+    tick = type("Tick", (), {})
+    for t in (0.0, 2.0, 4.69):
+        tick.t = t
+        observer.on_tick(tick)
+    assert slot.model is None and slot.version == 0
+    tick.t = 4.7025
+    observer.on_tick(tick)
+    assert isinstance(slot.model, AirModel) and slot.version == 1 and slot.swaps[-1].t == 4.7025
+    tick.t = 5.0
+    observer.on_tick(tick)
+    assert slot.version == 1 and len(slot.swaps) == 1  # once
+    # From take-off (the default) the slot holds the model at once and nothing swaps.
+    assert air_model_observers(load_config(overrides={"sim.air_model": True}), slot) == []
+    assert isinstance(build_model_slot(load_config(overrides={"sim.air_model": True})).model, AirModel)
+
+
+def test_the_wake_terms_are_the_wake_alone():
+    """``sim.air_model_terms: wake``, a model of the wake's ceiling: the drone above's wake as the plant's, and
+    none of the drone's own air (drag, inflow, floor), which stays the layer's."""
+    cfg = load_config(overrides={"sim.air_model": True, "sim.air_model_terms": "wake", "fleet.size": 2,
+                                 "fleet.neighbour_input": True})
+    wake, full = build_model_slot(cfg).model, AirModel(TERMS, G, neighbour=True)
+    assert wake.takes_neighbour
+    # Fast and climbing, 4 cm over the floor, 0.25 m under the other drone, slightly aside.
+    x, u, upper = np.array([0.0, 0.0, 0.04, 0.8, -0.5, 0.6]), np.array([1.0, 0.5, 0.3]), np.array([0.02, 0.0, 0.29])
+    assert wake.evaluate(x, u)[:] == pytest.approx(np.zeros(3), abs=1e-12)  # no drone above: nothing
+    assert wake.evaluate(x, u, upper) == pytest.approx([0.0, 0.0, full._wake(x[None], upper[None])[0]], abs=1e-12)
+    assert wake.evaluate(x, u, upper)[2] < -1.0
+    assert np.linalg.norm(full.evaluate(x, u)) > 0.3  # the own air it leaves out is real
+
+
 def test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot(tmp_path):
     """The vertical oscillation's inflow turns every second: the layer's 0.5-1 Hz offset lags it, the model knows it."""
     from cfknode.app.bench.learning import Job, run_job
@@ -108,3 +148,16 @@ def test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot(tmp_
     runs = {row: run_job(Job(cell, row, 0, str(tmp_path), 4.0)) for row in ("layer", "air+layer")}
     assert all(math.isfinite(r.mse) and not r.fell and not r.tripped for r in runs.values())
     assert runs["air+layer"].mse < 0.5 * runs["layer"].mse
+
+
+def test_an_air_model_that_arrives_late_flies_the_layer_alone_until_then(tmp_path):
+    """``sim.air_model_from_s`` in a flight: before it the flight is the layer alone's to the bit; from it on, not."""
+    from cfknode.app.bench.learning import Job, run_job
+    from cfknode.app.bench.learning_cells import CELLS
+
+    cell = next(c for c in CELLS if c.name == "vertical A=0.3 f=0.5")
+    layer = run_job(Job(cell, "layer", 0, str(tmp_path), 3.0))
+    late = {t: run_job(Job(cell, "air+layer", 0, str(tmp_path), 3.0, (("sim.air_model_from_s", t),)))
+            for t in (5.0, 60.0)}  # the pattern runs from about 3.6 s to 6.6 s of flight
+    assert late[60.0].mse == layer.mse  # never arrived: the layer alone
+    assert late[5.0].mse != layer.mse and math.isfinite(late[5.0].mse) and not late[5.0].tripped

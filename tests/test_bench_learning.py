@@ -12,8 +12,8 @@ import pytest
 
 from cfknode.app.bench.learning import (Job, Run, cell_refusal, flight_overrides, markdown, ratio, run_job,
                                         select_cells)
-from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, LearnCell, QUICK_CELLS, SURFACE_MIN_HEIGHT,
-                                              ground_threshold, pass_errors, refusal)
+from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, FLEET_ONLY, LearnCell, QUICK_CELLS,
+                                              SURFACE_MIN_HEIGHT, ground_threshold, pass_errors, refusal)
 from cfknode.app.config import load_config
 from cfknode.flight.trajectory import make_trajectory
 
@@ -140,7 +140,8 @@ def test_quick_bench_flies_every_row_through_the_real_path(tmp_path, capsys):
     assert code == 0
     data = json.loads(capsys.readouterr().out)
     assert data["mode"] == "quick" and data["command"].startswith("cfknode bench learning --quick")
-    assert sorted(r["controller"] for r in data["runs"]) == sorted(CONTROLLERS)  # every row landed in the table
+    # Every row landed in the table but the wake's ceiling, which a single drone does not fly.
+    assert sorted(r["controller"] for r in data["runs"]) == sorted(set(CONTROLLERS) - FLEET_ONLY)
     assert all(r["cell"] == QUICK_CELLS[0] and r["mse"] > 0.0 for r in data["runs"])
     md = (tmp_path / "learning_quick.md").read_text()
     assert md.count("| KNODE-MPC-Online") == 2 and md.count("| nominal MPC") == 1 and md.count("| MPC + layer |") == 1
@@ -193,6 +194,20 @@ def test_the_ceiling_row_flies_the_plant_s_air_beside_the_layer():
     cfg = load_config(overrides=flight_overrides(job))
     assert cfg.sim.air_model and cfg.fleet.neighbour_input and not cfg.online.enabled
     assert cfg.controller.adaptation == load_config().controller.adaptation  # the configured layer
+
+
+def test_the_wake_s_ceiling_flies_the_plant_s_wake_in_the_fleet_cells_only(tmp_path):
+    from cfknode.app.cli import main
+
+    job = Job(BY_NAME["crossing dz=0.3 v=1"], "wake+layer", 0, "/tmp", 4.0)
+    cfg = load_config(overrides=flight_overrides(job))
+    assert cfg.sim.air_model and cfg.sim.air_model_terms == "wake" and cfg.fleet.neighbour_input
+    assert not cfg.online.enabled
+    # Asked for on a single drone's cell, the row is left out, not flown as the layer under another name.
+    code = main(["bench", "learning", "--quick", "--jobs", "1", "--duration", "1", "--rows", "layer,wake+layer",
+                 "--json", "--out", str(tmp_path)])
+    assert code == 0
+    assert [r["controller"] for r in json.loads((tmp_path / "learning_quick.json").read_text())["runs"]] == ["layer"]
 
 
 def test_every_cell_can_be_named_on_the_command_line():

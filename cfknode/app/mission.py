@@ -105,18 +105,39 @@ def build_model_slot(cfg: Config, notes: list[str] | None = None) -> ModelSlot |
 
 
 def air_model_slot(cfg: Config) -> ModelSlot:
-    """``sim.air_model``: the realistic plant's own air terms as the MPC's model (a bench's ceiling)."""
+    """``sim.air_model``: the realistic plant's own air terms as the MPC's model (a bench's ceiling); empty until
+    ``sim.air_model_from_s`` (``air_model_observers`` swaps the model in then)."""
+    model = air_model(cfg)
+    return ModelSlot(None, version=0) if cfg.sim.air_model_from_s > 0.0 else ModelSlot(model, version=1)
+
+
+def air_model(cfg: Config) -> Any:
+    """The ``AirModel`` that ``sim.air_model`` flies; a one-line ``ConfigError`` where it means nothing."""
     why = ("simulation only (backend sim)" if cfg.backend != "sim"
            else "it needs sim.aero realistic: the ideal plant has no air terms" if cfg.sim.aero != "realistic"
            else "controller.kind geometric uses no model" if cfg.controller.kind == "geometric"
            else "it replaces controller.model: set one of them" if cfg.controller.model
            else "online learning swaps its own models in: not with online.enabled" if cfg.online.enabled
+           else "sim.air_model_terms wake needs a fleet (fleet.size >= 2) with fleet.neighbour_input"
+           if cfg.sim.air_model_terms == "wake" and not (cfg.fleet.size >= 2 and cfg.fleet.neighbour_input)
            else "")
     if why:
         raise ConfigError(f"sim.air_model gives the MPC the simulator's air: {why}")
     from cfknode.sim_backend.air_model import AirModel
 
-    return ModelSlot(AirModel(cfg.sim.aero_terms, cfg.vehicle.gravity, neighbour=cfg.fleet.neighbour_input), version=1)
+    terms = cfg.sim.aero_terms
+    if cfg.sim.air_model_terms == "wake":  # the wake alone: the drone's own drag, inflow and floor left to the layer
+        terms = dataclasses.replace(terms, rotor_drag=0.0, inflow=0.0, ground_effect=0.0)
+    return AirModel(terms, cfg.vehicle.gravity, neighbour=cfg.fleet.neighbour_input)
+
+
+def air_model_observers(cfg: Config, slot: ModelSlot | None) -> list[Any]:
+    """With ``sim.air_model_from_s`` > 0, the tick observer that swaps the air model into ``slot`` then."""
+    if not cfg.sim.air_model or cfg.sim.air_model_from_s <= 0.0 or slot is None:
+        return []
+    from cfknode.sim_backend.air_model import SwapAt
+
+    return [SwapAt(slot, air_model(cfg), cfg.sim.air_model_from_s)]
 
 
 def model_not_flown(cfg: Config, score: Any) -> str | None:
@@ -376,6 +397,7 @@ def _flight_parts(sess: Backend, request: _Request, kit: _Kit, supervisor: Super
             *request.observers,
             *([status] if status is not None else []),
             *sess.fault_observers(kit.model),
+            *air_model_observers(cfg, kit.model),
         ],
         estop=kit.estop,
     )

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, GROUPS, LABELS, QUICK_CELLS, QUICK_DURATION,
-                                              LearnCell, ground_threshold, pass_errors, refusal)
+from cfknode.app.bench.learning_cells import (CELLS, CONTROLLERS, FLEET_ONLY, GROUPS, LABELS, QUICK_CELLS,
+                                              QUICK_DURATION, LearnCell, ground_threshold, pass_errors, refusal)
 from cfknode.app.bench.rows import DEFAULT_FIXED_LATENCY_S
 
 
@@ -210,10 +210,11 @@ def markdown(cells: list[LearnCell], refused: list[str], runs: list[Run], contro
     if refused:
         lines += ["", "Refused (the Crazyflie cannot fly them): " + "; ".join(refused) + "."]
     rows = [(c.name, ratio(runs, c.name, "online+layer", "layer"), ratio(runs, c.name, "online+layer", "nominal"),
-             ratio(runs, c.name, "online", "nominal"), ratio(runs, c.name, "air+layer", "layer"))
+             ratio(runs, c.name, "online", "nominal"), ratio(runs, c.name, "air+layer", "layer"),
+             ratio(runs, c.name, "wake+layer", "layer"))
             for c in cells if any(r.cell == c.name for r in runs)]
     lines += ["", "| cell | online+layer / layer | online+layer / nominal | online (paper) / nominal | "
-              "the plant's air + layer / layer (ceiling) |", "|---|---|---|---|---|"]
+              "the plant's air + layer / layer (ceiling) | the plant's wake + layer / layer |", "|---|---|---|---|---|---|"]
     lines += [f"| {n} | " + " | ".join(f"{v:.2f}" if math.isfinite(v) else "-" for v in vs) + " |" for n, *vs in rows]
     return "\n".join(lines)
 
@@ -328,7 +329,7 @@ def run_learning(args: argparse.Namespace, version: str) -> int:
     logs = Path(tempfile.mkdtemp(prefix="cfknode-bench-learning-", dir=out))
     controllers = select_rows(args.rows)
     jobs = [Job(c, k, s, str(logs), duration or c.duration, extra, args.fixed_latency)
-            for c in cells for s in seeds for k in controllers]
+            for c in cells for s in seeds for k in controllers if c.fleet >= 2 or k not in FLEET_ONLY]
     mode = "quick" if args.quick else "full"
     command = _command(args, executor)
     console = Console(stderr=args.json)

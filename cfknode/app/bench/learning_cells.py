@@ -35,13 +35,19 @@ CONTROLLERS: dict[str, dict[str, Any]] = {
     # of the state could learn; in a fleet it takes the drone above's position, as the learner's networks do.
     "air+layer": {"controller.kind": "mpc", "online.enabled": False, "sim.air_model": True,
                   "fleet.neighbour_input": True},
+    # The ceiling of a model of the wake alone (fleet.wake_only): the plant's wake, the drone's own air left to
+    # the layer. Flown in the fleet cells only (a drone with none above has no wake).
+    "wake+layer": {"controller.kind": "mpc", "online.enabled": False, "sim.air_model": True,
+                   "sim.air_model_terms": "wake", "fleet.neighbour_input": True},
 }
+FLEET_ONLY = frozenset({"wake+layer"})
 LABELS = {
     "nominal": "nominal MPC",
     "layer": "MPC + layer",
     "online+layer": "KNODE-MPC-Online + layer",
     "online": "KNODE-MPC-Online (paper)",
     "air+layer": "MPC + layer + the plant's air (ceiling)",
+    "wake+layer": "MPC + layer + the plant's wake (a wake model's ceiling)",
 }
 TILT_MARGIN_DEG = 10.0  # the MPC may tilt this much more than the pattern needs: room to correct errors
 MAX_PLANNED_TILT_DEG = 50.0  # deg: 10 under the supervisor's tumble limit (safety.max_tilt_deg, 60)

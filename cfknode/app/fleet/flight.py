@@ -45,7 +45,8 @@ from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference
 from cfknode.app.learning import check_online, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
-from cfknode.app.mission import _controller_label, build_controller, build_model_slot, build_supervisor
+from cfknode.app.mission import (_controller_label, air_model_observers, build_controller, build_model_slot,
+                                 build_supervisor)
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
 from cfknode.app.stall_exit import LoopProgress, stall_exit
 from cfknode.app.trajectory_fit import fence_problem
@@ -341,7 +342,8 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
         taps = [flying.board.tap(i)] if flying.board is not None else []
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
-                                 observers=[coordinator.tap(i), *taps, *d.fault_observers(model)], estop=box,
+                                 observers=[coordinator.tap(i), *taps, *d.fault_observers(model),
+                                            *air_model_observers(d.config, model)], estop=box,
                                  signals=False))
     for i, (d, p) in enumerate(zip(drones, parts) if dashboard is not None else ()):
         p.observers.extend(dashboard.observers(i, d, p.trajectory, p.controller, p.supervisor, coordinator))
