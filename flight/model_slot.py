@@ -64,8 +64,14 @@ class ModelSlot:
     def residual(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> ResidualLinearisation | None:
         """The affine residual at the given nodes (N, 6) and (N, 3); None when flying nominal."""
         self.last_neighbour = None
-        if self._model is None:
-            return None
+        if self._model is None or not getattr(self._model, "takes_neighbour", False):
+            # Where the drone above is, though nothing flown sees it: a first swap to a model that does is re-based
+            # there (evaluated at its stand-in, a wake model put its peak into the layer's constant).
+            if self.neighbour is not None:
+                p = x_nodes[0, 0:3]
+                self.last_neighbour = p + self.neighbour.relative(p)
+            if self._model is None:
+                return None
         nb = None
         if self.neighbour is not None and getattr(self._model, "takes_neighbour", False):
             nb = self.neighbour.horizon(x_nodes)

@@ -140,6 +140,27 @@ def test_the_slot_passes_the_neighbour_only_to_a_model_that_takes_it():
             assert np.array_equal(fed.c, alone.c) and np.array_equal(fed.jx, alone.jx)
 
 
+def test_the_slot_notes_where_the_drone_above_is_while_nothing_flown_sees_it():
+    """A first swap to a model of the neighbour is re-based at the neighbour's real positions: flying nominal (or a
+    model without the input), the slot still notes where the drone above was; with none above, the stand-in gap."""
+    board = NeighbourBoard([_Ref(), _Ref()], period=0.01, node_dt=0.05, nodes=3)
+    board.update(0, 0.0, np.array([0.0, 0.0, 0.5]))
+    board.update(1, 0.0, np.array([0.04, 0.0, 1.0]))
+    x, u, _ = points(3)
+    x[:, 0:3] = [0.0, 0.0, 0.5]
+    plain = ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(6)))
+    for model in (None, plain):
+        slot = ModelSlot(model)
+        slot.residual(x, u)
+        assert slot.last_neighbour is None  # no feed: nothing to note
+        slot.neighbour = board.feed(0)
+        slot.residual(x, u)
+        assert np.allclose(slot.last_neighbour, [0.04, 0.0, 1.0])
+        slot.neighbour = board.feed(1)  # drone 1 has none above it
+        slot.residual(np.tile([0.04, 0.0, 1.0, 0.0, 0.0, 0.0], (3, 1)), u)
+        assert np.allclose(slot.last_neighbour, np.array([0.04, 0.0, 1.0]) + NONE_ABOVE)
+
+
 def _tick(t, p):
     est = SimpleNamespace(p=np.array(p, dtype=float), v=np.zeros(3))
     return SimpleNamespace(t=t, est=est, acc=np.zeros(3), source="mpc", model_version=0, compute_s=0.0)
