@@ -122,12 +122,18 @@ def test_the_board_gives_the_nearest_drone_above_and_moves_it_along_its_referenc
     assert board.feed(2).horizon(nodes + [0, 0, 1.5, 0, 0, 0]) is None
 
 
-def test_the_slot_passes_the_neighbour_only_to_a_model_that_takes_it():
+def _pair(above_x: float):
+    """Drone 0 at 0.5 m, drone 1 0.5 m above it and ``above_x`` aside; drone 0's nodes and commands."""
     board = NeighbourBoard([_Ref(), _Ref()], period=0.01, node_dt=0.05, nodes=3)
     board.update(0, 0.0, np.array([0.0, 0.0, 0.5]))
-    board.update(1, 0.0, np.array([0.0, 0.0, 1.0]))
+    board.update(1, 0.0, np.array([above_x, 0.0, 1.0]))
     x, u, _ = points(3)
     x[:, 0:3] = [0.0, 0.0, 0.5]
+    return board, x, u
+
+
+def test_the_slot_passes_the_neighbour_only_to_a_model_that_takes_it():
+    board, x, u = _pair(0.0)
     nb_model = ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(9)))
     plain = ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(6)))
     for model in (nb_model, plain):
@@ -143,11 +149,7 @@ def test_the_slot_passes_the_neighbour_only_to_a_model_that_takes_it():
 def test_the_slot_notes_where_the_drone_above_is_while_nothing_flown_sees_it():
     """A first swap to a model of the neighbour is re-based at the neighbour's real positions: flying nominal (or a
     model without the input), the slot still notes where the drone above was; with none above, the stand-in gap."""
-    board = NeighbourBoard([_Ref(), _Ref()], period=0.01, node_dt=0.05, nodes=3)
-    board.update(0, 0.0, np.array([0.0, 0.0, 0.5]))
-    board.update(1, 0.0, np.array([0.04, 0.0, 1.0]))
-    x, u, _ = points(3)
-    x[:, 0:3] = [0.0, 0.0, 0.5]
+    board, x, u = _pair(0.04)
     plain = ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(6)))
     for model in (None, plain):
         slot = ModelSlot(model)
