@@ -49,7 +49,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_air_model.py": {
         "*": FAST,
         "test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot": FLIES,
-        "test_an_air_model_that_arrives_late_flies_the_layer_alone_until_then": FLIES,
+        "test_an_air_model_that_arrives_late_changes_the_flight_from_then": FLIES,
     },
     "test_adaptation_engage.py": {
         "*": FLIES,
@@ -109,7 +109,6 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_bench_learning.py": {
         "*": FAST,
         "test_quick_bench_flies_every_row_through_the_real_path": BOTH,
-        "test_the_wake_s_ceiling_flies_the_plant_s_wake_in_the_fleet_cells_only": BOTH,
     },
     "test_bench_robustness.py": {
         "*": FLIES,
