@@ -14,9 +14,6 @@ point-mass view of the same vehicle. Simulation only (the flight refuses it on h
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
 from cfknode.sim_backend.aero import DOWNWASH_TABLE, GROUND_EFFECT_TABLE
@@ -104,20 +101,4 @@ class AirModel:
         return -t.downwash * self.gravity * np.interp(gap, _WAKE_X, _WAKE_Y, right=0.0) * lateral
 
 
-@dataclass
-class SwapAt:
-    """Tick observer: swaps ``model`` into ``slot`` at flight time ``t``, as an online learner's first model arrives
-    (``sim.air_model_from_s``)."""
-
-    slot: Any
-    model: AirModel
-    t: float
-    done: bool = False
-
-    def on_tick(self, tick: Any) -> None:
-        if not self.done and tick.t >= self.t - 1e-9:
-            self.done = True
-            self.slot.swap(self.model, self.slot.version + 1, tick.t)
-
-
-__all__ = ["AirModel", "SwapAt"]
+__all__ = ["AirModel"]

@@ -38,6 +38,7 @@ from cfknode.sim_backend.settings import FaultsConfig, FaultWindow, Gust, SimCon
 from cfknode.kernel.link import LinkStatus
 from cfknode.sim_backend.aero_vehicle import AeroVehicle
 from cfknode.sim_backend.scenario import wind_at
+from cfknode.sim_backend.timed_swap import SwapAt
 from cfknode.sim_backend.vehicle import Vehicle
 
 _TIME_EPS = 1e-9
@@ -202,20 +203,6 @@ class NanResidual:
 
 
 @dataclass
-class _NanModelSwap:
-    """Tick observer: swaps the NaN model into the slot at ``t``, as the online learner swaps."""
-
-    slot: Any
-    t: float
-    done: bool = False
-
-    def on_tick(self, tick: Any) -> None:
-        if not self.done and tick.t >= self.t - _TIME_EPS:
-            self.done = True
-            self.slot.swap(NanResidual(), self.slot.version + 1, tick.t)
-
-
-@dataclass
 class _SelfInterrupt:
     """Tick observer: sends this process SIGINT at each of ``times`` (the real signal)."""
 
@@ -255,7 +242,7 @@ class SimFaults:
         if faults.nan_model_at >= 0:
             if model_slot is None:
                 raise ValueError("faults.nan_model_at needs a model slot to swap into")
-            out.append(_NanModelSwap(model_slot, faults.nan_model_at))
+            out.append(SwapAt(model_slot, NanResidual(), faults.nan_model_at))
         if faults.sigint_at:
             if threading.current_thread() is not threading.main_thread():
                 # Only the main thread's flight can catch SIGINT; elsewhere it would hit the main thread.

@@ -14,7 +14,8 @@ import pytest
 from cfknode.app.config import ConfigError, load_config
 from cfknode.app.mission import air_model_observers, build_model_slot
 from cfknode.sim_backend.aero import measured_downwash_force_z, rotor_and_ground_force, rotor_speed_ratio
-from cfknode.sim_backend.air_model import AirModel, SwapAt
+from cfknode.sim_backend.air_model import AirModel
+from cfknode.sim_backend.timed_swap import SwapAt
 
 CFG = load_config()
 G = CFG.vehicle.gravity

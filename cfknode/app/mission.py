@@ -135,7 +135,7 @@ def air_model_observers(cfg: Config, slot: ModelSlot | None) -> list[Any]:
     """With ``sim.air_model_from_s`` > 0, the tick observer that swaps the air model into ``slot`` then."""
     if not cfg.sim.air_model or cfg.sim.air_model_from_s <= 0.0 or slot is None:
         return []
-    from cfknode.sim_backend.air_model import SwapAt
+    from cfknode.sim_backend.timed_swap import SwapAt
 
     return [SwapAt(slot, air_model(cfg), cfg.sim.air_model_from_s)]
 
