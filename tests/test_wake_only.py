@@ -20,11 +20,15 @@ from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.loop import where_flown
 from cfknode.flight.adaptation.observer import rebase_offset
 from cfknode.flight.adaptation.settings import settings_from_controller
+from cfknode.flight.learning.learner import OnlineLearner
 from cfknode.flight.learning.windows import WakeOnly, WindowRecorder, flown_command
+from cfknode.flight.model_slot import ModelSlot
+from cfknode.flight.neighbours import NONE_ABOVE
 from cfknode.models.knode import from_torch_queue
 from cfknode.models.modelfile import MASKED_INPUT_SCALE, Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.trainer_process import TrainerSettings, TrainRequest, Window, _train, online_normalisation
+from fakes import ListLog
 from test_residual_np import random_queue
 
 PROFILE = Path(__file__).parent.parent / "examples" / "learning-in-a-wake.yaml"
@@ -206,6 +210,40 @@ def test_a_wake_only_recorder_learns_only_while_tracking():
         plain.add(tick)
     assert plain.windows == 3 and wake.windows == 1  # 0.5 s windows: the 1 s of tracking holds one and a bit
     assert wake.fresh(0.0)[0][0] >= 1.0
+
+
+def test_a_drone_with_nothing_above_sends_no_round_and_one_that_was_under_a_drone_does():
+    """A fleet's top drone has no wake to learn: its rounds would only take the shared trainer from the drones
+    below (on the 7-pass crossing they doubled the flight's wall time, and every one was rejected)."""
+    from test_online_learner import ScriptedTrainer, outcome_with
+
+    cfg = load_config(overrides={**_flat(yaml.safe_load(PROFILE.read_text())), "fleet.size": 2, "online.enabled": True})
+    settings = dataclasses.replace(learner_settings(cfg, True), replay_windows=2)
+    above = {"d": NONE_ABOVE}
+    slot = ModelSlot(None, version=0)
+    slot.neighbour = SimpleNamespace(relative=lambda p: above["d"].copy())
+    trainer = ScriptedTrainer(lambda req: outcome_with(None, req))
+    learner = OnlineLearner(settings, slot, trainer, ListLog())
+    t_col, k = settings.t_col, 0
+
+    def fly(seconds: float) -> None:
+        nonlocal k
+        for _ in range(int(round(seconds / settings.period))):
+            tick = _tick(k * settings.period, stepping=False, scale=1.0)
+            tick.supervisor_state, tick.source, tick.guarded, tick.saturated = "TRACK", "mpc", False, False
+            learner.on_tick(tick)
+            k += 1
+
+    fly(3 * t_col + 0.1)
+    assert learner.recorder.windows == 3 and trainer.requests == []
+    assert learner.stats.windows_no_drone_above == 3 and learner.summary_fields()["windows_no_drone_above"] == 3
+    above["d"] = np.array([0.1, 0.0, 0.3])  # a drone comes over for a moment: that window is sent
+    fly(0.05)
+    above["d"] = NONE_ABOVE
+    fly(t_col)
+    assert len(trainer.requests) == 1 and np.any(trainer.requests[0].window.nb != NONE_ABOVE)
+    fly(t_col)  # the next window had nothing above, but its replay holds the pass: sent too
+    assert len(trainer.requests) == 2 and not np.any(trainer.requests[1].window.nb != NONE_ABOVE)
 
 
 def test_wake_only_without_the_neighbour_input_is_refused_in_one_line():

@@ -46,12 +46,11 @@ from cfknode.flight.learning.gate import GateVerdict
 from cfknode.flight.learning.install import GateRules, TrainerJudging, held_out_tail, install_steps
 from cfknode.flight.learning.latency import applied_latency
 from cfknode.flight.learning.rejudge import FlyingRejudge
-from cfknode.flight.learning.windows import TickLike, WindowRecorder
+from cfknode.flight.learning.windows import TickLike, WindowRecorder, nothing_above
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_check import SCORE_KEY
 from cfknode.models.trainer_process import JobOutcome, TrainerReady, TrainOutcome, TrainRequest, Window
-
 
 from cfknode.flight.learning.records import (  # noqa: F401 (re-exported: the app and tests use them)
     LearnerSettings, Log, OnlineStats, RoundRecord, SwapEvent, _ENDING_STATES, _Flying, _Gating, _Held, _Outstanding,
@@ -148,12 +147,10 @@ class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
             # Pace: the next tick may not start before the trainer has had as much wall time as
             # the simulation will have advanced since the round (or restart) began.
             timeout = max(0.0, (self._next_tick_time(t) - pace.t) - (self._wall() - pace.wall))
+        waited = self._wall()
+        event = self.client.poll(timeout)
         if timeout > 0.0:
-            waited = self._wall()
-            event = self.client.poll(timeout)
             self.stats.pace_wait_s += self._wall() - waited
-        else:
-            event = self.client.poll(0.0)
         if event is not None:
             self._pace_from = None
             self._on_event(event, t)
@@ -215,6 +212,9 @@ class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
             return
         earlier = [w for w in self._recent if w.index < window.index]
         replay = tuple(earlier[-self.s.replay_windows :]) if self.s.replay_windows > 0 else ()
+        if self.s.wake_only and nothing_above((window, *replay)):
+            self.stats.windows_no_drone_above += 1  # a network of the neighbour alone learns nothing there
+            return
         self._round += 1
         holdout = self.s.holdout_fraction if (self.s.paper_lockstep and self.s.gate) else 0.0
         request = TrainRequest(self._round, self._next_version, window, replay, self._flying.file, holdout)

@@ -102,6 +102,7 @@ class LearnerReports:
             "windows_sent": s.rounds_sent,
             "windows_superseded": s.windows_superseded,
             "windows_stale": s.windows_stale,
+            "windows_no_drone_above": s.windows_no_drone_above,
             "partial_windows_discarded": self.recorder.discarded,
             "windows_unsettled": self.recorder.unsettled,
             "swap_median_ms": _ms(np.median(s.swap_s)) if s.swap_s else None,

@@ -13,6 +13,7 @@ import numpy as np
 
 from cfknode.flight.adaptation.loop import GROUND_MARGIN, body_z
 from cfknode.flight.learning.command_lag import CommandLag
+from cfknode.flight.neighbours import NONE_ABOVE
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
@@ -228,4 +229,11 @@ class WindowRecorder:
         self._n = keep
 
 
-__all__ = ["ELIGIBLE_SOURCES", "MIN_HEIGHT", "TickLike", "WindowRecorder"]
+def nothing_above(windows: tuple[Window, ...]) -> bool:
+    """Whether no drone was above at any tick of these windows (their neighbour input always ``NONE_ABOVE``, or not
+    recorded): a fleet's top drone. Networks of the neighbour alone learn nothing from them, and their rounds would
+    only take the shared trainer from the drones below (docs/fleet.md#wake-only)."""
+    return not any(w.nb is not None and np.any(w.nb != NONE_ABOVE) for w in windows)
+
+
+__all__ = ["ELIGIBLE_SOURCES", "MIN_HEIGHT", "TickLike", "WindowRecorder", "nothing_above"]
