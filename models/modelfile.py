@@ -15,7 +15,8 @@ Layout (format version 1):
 
 A network maps the raw input z = (vx, vy, vz, ax, ay, az) to a residual on v' (m/s^2), or in a fleet with
 ``fleet.neighbour_input`` z = (v, a, nbx, nby, nbz), the last three the relative position of the nearest
-drone above (``NEIGHBOUR_INPUT_NAMES``; ``architecture.inputs`` records which, docs/fleet.md#neighbour-input):
+drone above (``NEIGHBOUR_INPUT_NAMES``; ``architecture.inputs`` records which, docs/fleet.md#neighbour-input), or
+for a wake network (``fleet.wake_only``) z = (v, a, nbr, nb0, nbz), its horizontal distance, 0 and its height:
 r = output_scale * MLP((z - input_mean) / input_scale); the queue's residual is
 sum_j w_j r_j with w_j = e^(j + 1 - n) (newest 1, then e^-1, e^-2, ...).
 """
@@ -37,17 +38,15 @@ import numpy as np
 from cfknode.kernel.bounded_input import describe_os_error, load_json, open_regular
 from cfknode.kernel.outputs import output_problem
 from cfknode.models.input_bounds import BOUNDS_KEY, bounds_problem
+from cfknode.models.input_layouts import (  # noqa: F401 (re-exported: readers name the layouts here)
+    INPUT_LAYOUTS, INPUT_NAMES, N_IN, NEIGHBOUR_INPUT_NAMES, NEIGHBOUR_NAMES, WAKE_INPUT_NAMES, WAKE_NAMES,
+)
 from cfknode.models.residual_check import SCORE_KEY, score_problem
 
 FORMAT_NAME = "cfknode.knode"
 FORMAT_VERSION = 1
-INPUT_NAMES = ("vx", "vy", "vz", "ax", "ay", "az")
 OUTPUT_NAMES = ("dvx", "dvy", "dvz")
 ACTIVATIONS = ("tanh", "softplus", "relu")
-N_IN = len(INPUT_NAMES)
-NEIGHBOUR_NAMES = ("nbx", "nby", "nbz")  # neighbour minus self, world frame, m
-NEIGHBOUR_INPUT_NAMES = INPUT_NAMES + NEIGHBOUR_NAMES
-INPUT_LAYOUTS = (INPUT_NAMES, NEIGHBOUR_INPUT_NAMES)
 # An input scale this large switches the input off ((z - m) / s ~ 1e-9), its inverse as an output scale the output.
 MASKED_INPUT_SCALE = 1e9
 N_OUT = len(OUTPUT_NAMES)
@@ -129,7 +128,7 @@ class ModelFile:
     software_version: str = ""
     created: str = ""  # ISO 8601 UTC; filled by save_model when empty
     extra: Mapping[str, Any] = field(default_factory=dict)  # JSON-serialisable, e.g. the online model version
-    inputs: tuple[str, ...] = INPUT_NAMES  # or NEIGHBOUR_INPUT_NAMES: the networks' input layout
+    inputs: tuple[str, ...] = INPUT_NAMES  # or NEIGHBOUR_INPUT_NAMES, WAKE_INPUT_NAMES: the networks' input layout
 
     @property
     def takes_neighbour(self) -> bool:
@@ -296,7 +295,7 @@ def _model_from(meta: Mapping[str, Any], tensors: Mapping[str, np.ndarray], name
     if not isinstance(inputs, list) or not isinstance(outputs, list) or tuple(inputs) not in INPUT_LAYOUTS \
             or tuple(outputs) != OUTPUT_NAMES:
         raise ModelFileError(f"model file {name}: input/output layout differs from {INPUT_NAMES} (or with "
-                             f"{NEIGHBOUR_NAMES}) -> {OUTPUT_NAMES}")
+                             f"{NEIGHBOUR_NAMES} or {WAKE_NAMES}) -> {OUTPUT_NAMES}")
     n_in = len(inputs)
     queue_size = need(meta, "queue_size")
     nets_meta = need(meta, "networks")
@@ -468,6 +467,7 @@ __all__ = [
     "NEIGHBOUR_INPUT_NAMES",
     "NEIGHBOUR_NAMES",
     "OUTPUT_NAMES",
+    "WAKE_INPUT_NAMES",
     "ModelFile",
     "ModelFileError",
     "NetworkWeights",

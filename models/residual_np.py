@@ -15,8 +15,9 @@ position is exactly zero. A queue with the neighbour input (a fleet's ``fleet.ne
 docs/fleet.md#neighbour-input) also sees d = p_nb - p, the relative position of the drone above: the
 MPC's linearisation takes the neighbour's positions at its nodes (``nb``, known parameters), so its
 Jacobian with respect to the drone's own position is -dr/dd (none for a wake-only queue, ``fleet.wake_only``:
-a known force at each node). Without ``nb`` (the gate, the monitor, the
-layer's re-base) d is the newest network's input mean: where the model was trained.
+a known force at each node, whose networks see d as the drone above's horizontal distance and height). Without
+``nb`` (the gate, the monitor, the layer's re-base) d is the newest network's input mean: where the model was
+trained.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.models.input_bounds import stored_bounds
+from cfknode.models.input_layouts import WAKE_INPUT_NAMES, about_the_axis
 from cfknode.models.modelfile import N_IN, N_OUT, ModelFile
 from cfknode.models.residual_check import stored_score
 
@@ -51,6 +53,8 @@ class ResidualQueue:
         self._out_bias = layers[-1].bias.sum(axis=0) if layers else np.zeros((1, N_OUT))
         # The networks see only the neighbour's relative position (trainer_process.online_normalisation).
         self.wake_only = False
+        # ... as its horizontal distance and height (modelfile.WAKE_INPUT_NAMES): a jet about the drone above's axis.
+        self.about_the_axis = False
         # cfknode train's held-out per-axis score beside the fast layer (residual_check.py); None: not stored.
         self.beyond_layer: np.ndarray | None = None
         # Per network, the inputs' range it was trained on, (p, 1, n_in) each (input_bounds.py); None: unbounded.
@@ -90,6 +94,7 @@ class ResidualQueue:
             )
         queue = cls(tuple(stacked), mf.activation, len(mf.networks), default)
         queue.wake_only = all(net.normalisation.wake_only for net in mf.networks)
+        queue.about_the_axis = tuple(mf.inputs) == WAKE_INPUT_NAMES
         queue.beyond_layer = stored_score(mf.extra)
         bounds = stored_bounds(mf.extra, len(mf.networks))
         if bounds is not None and bounds.shape[2] == stacked[0].weight.shape[2]:
@@ -193,6 +198,8 @@ class ResidualQueue:
             d = np.broadcast_to(self.neighbour_default, (x.shape[0], 3))
         else:
             d = np.atleast_2d(np.asarray(nb, dtype=np.float64)) - x[:, 0:3]
+            if self.about_the_axis:
+                d = about_the_axis(d)
         return np.concatenate((x[:, 3:6], u, d), axis=1)
 
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from cfknode.models.input_bounds import BOUNDS_KEY, data_bounds, queue_bounds
 from cfknode.models.settings import FaultInjection, KnodeConfig, TrainingConfig
+from cfknode.models.input_layouts import WAKE_INPUT_NAMES, about_the_axis
 from cfknode.models.modelfile import MASKED_INPUT_SCALE, ModelFile, Normalisation
 
 CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)
@@ -238,6 +239,13 @@ def _train_round(request: TrainRequest, settings: TrainerSettings) -> TrainOutco
     return replace(outcome, wall_s=time.perf_counter() - wall0, cpu_s=time.process_time() - cpu0)
 
 
+def _seen(inputs: np.ndarray, wake_only: bool) -> np.ndarray:
+    """A window's inputs as the round's networks see them: a wake network the drone above about its axis."""
+    if not wake_only or inputs.shape[1] <= 3:  # (u) alone: no neighbour recorded
+        return inputs
+    return np.concatenate((inputs[:, :3], about_the_axis(inputs[:, 3:])), axis=1)
+
+
 def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     import torch
 
@@ -245,7 +253,8 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     from cfknode.models.training import Pairs, Segment, fit_normalisation, make_dataset, train
 
     w = request.window
-    segments = [Segment(r.t, r.x, r.inputs, source=f"window{r.index}") for r in (*request.replay, w)]
+    segments = [Segment(r.t, r.x, _seen(r.inputs, settings.wake_only), source=f"window{r.index}")
+                for r in (*request.replay, w)]
     # make_dataset holds out the tail of every segment it is given, but only the newest window's
     # tail is held out for the gate: the replayed windows become a dataset of their own, all trained on.
     dataset = make_dataset(segments[-1:], settings.training.velocity_filter_hz, request.holdout_fraction)
@@ -260,6 +269,8 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     norm = online_normalisation(fit_normalisation(dataset), settings.wake_only)
     seed = settings.training.seed + request.round
     base = request.base
+    if base is not None and (tuple(base.inputs) == WAKE_INPUT_NAMES) != settings.wake_only:
+        base = None  # its networks read d otherwise: a queue holds one input layout
     if base is None or not base.networks:
         queue = KnodeQueue.from_config(settings.knode, norm, seed=seed)
         queue.push()
@@ -281,6 +292,8 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
         training=result.training_info(dataset),
         extra={"version": request.version, "round": request.round, "base_version": w.version},
     )
+    if settings.wake_only:
+        model = replace(model, inputs=WAKE_INPUT_NAMES)
     if settings.input_bounds and len(dataset.train):
         z = np.concatenate((dataset.train.x0[:, 3:6], dataset.train.u), axis=1)
         held = queue_bounds(None if base is None else base.extra, 0 if base is None else len(base.networks),
