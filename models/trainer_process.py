@@ -239,11 +239,11 @@ def _train_round(request: TrainRequest, settings: TrainerSettings) -> TrainOutco
     return replace(outcome, wall_s=time.perf_counter() - wall0, cpu_s=time.process_time() - cpu0)
 
 
-def _seen(inputs: np.ndarray, wake_only: bool) -> np.ndarray:
+def _seen(window: Window, wake_only: bool) -> np.ndarray:
     """A window's inputs as the round's networks see them: a wake network the drone above about its axis."""
-    if not wake_only or inputs.shape[1] <= 3:  # (u) alone: no neighbour recorded
-        return inputs
-    return np.concatenate((inputs[:, :3], about_the_axis(inputs[:, 3:])), axis=1)
+    if not wake_only or window.nb is None:
+        return window.inputs
+    return np.concatenate((window.u, about_the_axis(window.nb)), axis=1)
 
 
 def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
@@ -253,7 +253,7 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
     from cfknode.models.training import Pairs, Segment, fit_normalisation, make_dataset, train
 
     w = request.window
-    segments = [Segment(r.t, r.x, _seen(r.inputs, settings.wake_only), source=f"window{r.index}")
+    segments = [Segment(r.t, r.x, _seen(r, settings.wake_only), source=f"window{r.index}")
                 for r in (*request.replay, w)]
     # make_dataset holds out the tail of every segment it is given, but only the newest window's
     # tail is held out for the gate: the replayed windows become a dataset of their own, all trained on.
@@ -276,8 +276,8 @@ def _train(request: TrainRequest, settings: TrainerSettings) -> TrainOutcome:
         queue.push()
     else:
         queue = to_torch_queue(base, seed=seed)
-        # A network that saw the drone's own inputs is not carried into a wake-only one: the masked scale would
-        # keep its function, inputs and all.
+        # A wake-only network is not warm-started from one that saw the drone's own inputs, nor the other way:
+        # the masked scale would keep (or drop) their function, inputs and all.
         if settings.warm_start and base.networks[-1].normalisation.wake_only == settings.wake_only:
             net = queue.push(copy_from_newest=True)
             renormalise(net, norm)

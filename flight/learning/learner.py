@@ -147,7 +147,7 @@ class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
             # Pace: the next tick may not start before the trainer has had as much wall time as
             # the simulation will have advanced since the round (or restart) began.
             timeout = max(0.0, (self._next_tick_time(t) - pace.t) - (self._wall() - pace.wall))
-        waited = self._wall()
+        waited = self._wall() if timeout > 0.0 else 0.0  # the wall is read only while pacing
         event = self.client.poll(timeout)
         if timeout > 0.0:
             self.stats.pace_wait_s += self._wall() - waited
