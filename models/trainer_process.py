@@ -34,6 +34,7 @@ import importlib
 import math
 import os
 import signal
+import sys
 import time
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
@@ -164,7 +165,7 @@ class TrainOutcome:
 
 
 def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = False) -> None:
-    """Child-process entry: warm up, report ready, then serve requests until ``None`` or EOF.
+    """Child-process entry: warm up, report ready, serve requests until ``None`` or EOF, then end the process.
 
     ``tagged``: one trainer serving several learners (a fleet); each request comes as ``(tag,
     TrainRequest)`` and its outcome goes back as ``(tag, TrainOutcome)``, in arrival order."""
@@ -189,6 +190,16 @@ def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = Fal
     for name in settings.preload:
         importlib.import_module(name)
     conn.send(TrainerReady(os.getpid(), time.perf_counter() - start, os.nice(0), torch.get_num_threads()))
+    _serve(conn, settings, tagged)
+    # Nothing is left to hand back: leave without the interpreter's teardown of torch, about 1 s that
+    # the flight's close would wait for after every landing.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+def _serve(conn: Connection, settings: TrainerSettings, tagged: bool) -> None:
+    """Answer requests until ``None`` (the flight closes the trainer) or EOF (the flight is gone)."""
     while True:
         try:
             request = conn.recv()

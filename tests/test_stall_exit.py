@@ -101,7 +101,10 @@ _HUNG_FLIGHT = """
 import sys, threading
 sys.path.insert(0, sys.argv[3])
 from test_loop_stall import BLOCK_AT, HOVER
+import cfknode.app.stall_exit as stall_exit
 from cfknode.app.config import load_config
+
+stall_exit.GRACE_S = 2.0  # the test's patience; the default is 10 s
 from cfknode.app.mission import run_flight
 
 class Forever:

@@ -30,9 +30,10 @@ from typing import Any, Callable, Iterator, Sequence
 
 __all__ = ["EXIT_STATUS", "GRACE_S", "IDLE_GRACE_S", "LoopProgress", "stall_exit"]
 
+# Both graces are read when ``stall_exit`` starts, so a test may lower them.
 GRACE_S = 10.0  # wall seconds a loop gets to come back after its motors were stopped for it: far beyond a stall that ends
 # Wall seconds a loop with every motor off may go without a tick: a loop ticks at its rate from start to
-# end, so this only ever ends a hung one (read when ``stall_exit`` starts, so a test may lower it).
+# end, so this only ever ends a hung one.
 IDLE_GRACE_S = 10.0
 CLOSE_S = 2.0  # wall seconds each of the hand-back and the log close may take before we leave anyway
 EXIT_STATUS = 1  # the flight did not end as planned (as any other cut-short flight)
@@ -52,14 +53,15 @@ class LoopProgress:
 
 
 @contextlib.contextmanager
-def stall_exit(radios: Sequence[Any], log: Any, progress: LoopProgress, grace_s: float = GRACE_S,
+def stall_exit(radios: Sequence[Any], log: Any, progress: LoopProgress, grace_s: float | None = None,
                leave: Callable[[int], None] = os._exit, idle_grace_s: float | None = None) -> Iterator[None]:
     """While the block runs, a thread watches for a loop gone for good after its radio stopped the
-    motors (``grace_s``), or with every motor already off (``idle_grace_s``, default ``IDLE_GRACE_S``);
+    motors (``grace_s``, default ``GRACE_S``), or with every motor already off (``idle_grace_s``, default
+    ``IDLE_GRACE_S``);
     see the module docstring. ``log``: the flight log (``write``, ``close``, ``path``); ``leave``: how
     the process ends (``os._exit``; a test passes its own)."""
     done = threading.Event()
-    graces = (grace_s, IDLE_GRACE_S if idle_grace_s is None else idle_grace_s)
+    graces = (GRACE_S if grace_s is None else grace_s, IDLE_GRACE_S if idle_grace_s is None else idle_grace_s)
     watcher = threading.Thread(target=_watch, args=(radios, log, progress, graces, leave, done),
                                name="stall-exit", daemon=True)
     watcher.start()

@@ -7,6 +7,7 @@ does, on a nominal-MPC flight that saw only the first change.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -39,7 +40,8 @@ def mass_schedule(overrides: dict[str, Any], at: tuple[float, ...] = (2.0, 5.0),
 
 
 def train_offline_model(overrides: dict[str, Any], schedule: MassSchedule, out: Path, name: str) -> Path:
-    """Fly nominal MPC through the first change only, then ``cfknode train`` on that log; returns the model path."""
+    """Fly nominal MPC through the first change only, then ``cfknode train`` on that log (with the overrides'
+    ``training.*`` settings); returns the model path."""
     from cfknode.app.config import load_config
     from cfknode.app.mission import run_flight
 
@@ -48,8 +50,10 @@ def train_offline_model(overrides: dict[str, Any], schedule: MassSchedule, out: 
     if flight.summary.log_path is None:
         raise RuntimeError(f"{name}: the training flight wrote no log")
     model = out / f"{name}-offline.ckpt"
-    done = subprocess.run([sys.executable, "-m", "cfknode", "train", "--log", flight.summary.log_path, "--out", str(model)],
-                          capture_output=True, text=True)
+    # The cell's own training settings reach the model trained for it (JSON is YAML: --set reads it).
+    settings = [f"--set={key}={json.dumps(value)}" for key, value in overrides.items() if key.startswith("training.")]
+    done = subprocess.run([sys.executable, "-m", "cfknode", "train", "--log", flight.summary.log_path, "--out", str(model),
+                           *settings], capture_output=True, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"{name}: cfknode train failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
     return model
