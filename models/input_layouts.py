@@ -14,6 +14,8 @@ NEIGHBOUR_INPUT_NAMES = INPUT_NAMES + NEIGHBOUR_NAMES
 WAKE_NAMES = ("nbr", "nb0", "nbz")
 WAKE_INPUT_NAMES = INPUT_NAMES + WAKE_NAMES
 INPUT_LAYOUTS = (INPUT_NAMES, NEIGHBOUR_INPUT_NAMES, WAKE_INPUT_NAMES)
+# The finest a network resolves the drone above: its inputs are normalised by at least this (m).
+NEIGHBOUR_SCALE_FLOOR = 0.05
 
 
 def about_the_axis(d: np.ndarray) -> np.ndarray:
@@ -22,5 +24,5 @@ def about_the_axis(d: np.ndarray) -> np.ndarray:
     return np.column_stack((np.hypot(d[:, 0], d[:, 1]), np.zeros(d.shape[0]), d[:, 2]))
 
 
-__all__ = ["INPUT_LAYOUTS", "INPUT_NAMES", "NEIGHBOUR_INPUT_NAMES", "NEIGHBOUR_NAMES", "N_IN", "WAKE_INPUT_NAMES",
-           "WAKE_NAMES", "about_the_axis"]
+__all__ = ["INPUT_LAYOUTS", "INPUT_NAMES", "NEIGHBOUR_INPUT_NAMES", "NEIGHBOUR_NAMES", "NEIGHBOUR_SCALE_FLOOR", "N_IN",
+           "WAKE_INPUT_NAMES", "WAKE_NAMES", "about_the_axis"]

@@ -32,14 +32,15 @@ from torchdiffeq import odeint, odeint_adjoint
 
 from cfknode.models.settings import KnodeConfig, TrainingConfig
 from cfknode.models.knode import KnodeQueue, TrainingResidual, to_torch_queue
+from cfknode.models.input_layouts import NEIGHBOUR_SCALE_FLOOR
 from cfknode.models.modelfile import ModelFile, Normalisation, TrainingInfo
 
 # Floors on the fitted input scales: a hover window has velocity spread of mm/s, and
 # standardising by that would turn sensor noise into inputs of order one.
 VELOCITY_SCALE_FLOOR = 0.25  # m/s
 ACCELERATION_SCALE_FLOOR = 0.5  # m/s^2
-# The neighbour's relative position: a wake about 6 cm wide must stay resolvable (docs/fleet.md#neighbour-input).
-NEIGHBOUR_SCALE_FLOOR = 0.05  # m
+# The neighbour's relative position has NEIGHBOUR_SCALE_FLOOR: a wake about 6 cm wide must stay resolvable
+# (docs/fleet.md#neighbour-input).
 OUTPUT_SCALE_FLOOR = 0.5  # m/s^2
 FILTER_ORDER = 2  # Butterworth order; filtfilt doubles it
 

@@ -236,19 +236,18 @@ def test_a_wake_only_recorder_learns_only_while_tracking():
     assert wake.fresh(0.0)[0][0] >= 1.0
 
 
-def test_a_drone_with_nothing_above_sends_no_round_and_one_that_was_under_a_drone_does():
-    """A fleet's top drone has no wake to learn: its rounds would only take the shared trainer from the drones
-    below (on the 7-pass crossing they doubled the flight's wall time, and every one was rejected)."""
+def _wake_learner(above: dict):
+    """A wake-only learner with a scripted trainer, and ``fly(seconds)``: tracking ticks with the drone above at
+    ``above["d"]`` (a callable of the tick's index, or a fixed relative position)."""
     from test_online_learner import ScriptedTrainer, outcome_with
 
     cfg = load_config(overrides={**_flat(yaml.safe_load(PROFILE.read_text())), "fleet.size": 2, "online.enabled": True})
     settings = dataclasses.replace(learner_settings(cfg, True), replay_windows=2)
-    above = {"d": NONE_ABOVE}
+    k = 0
     slot = ModelSlot(None, version=0)
-    slot.neighbour = SimpleNamespace(relative=lambda p: above["d"].copy())
+    slot.neighbour = SimpleNamespace(relative=lambda p: np.array(above["d"](k) if callable(above["d"]) else above["d"]))
     trainer = ScriptedTrainer(lambda req: outcome_with(None, req))
     learner = OnlineLearner(settings, slot, trainer, ListLog())
-    t_col, k = settings.t_col, 0
 
     def fly(seconds: float) -> None:
         nonlocal k
@@ -258,6 +257,14 @@ def test_a_drone_with_nothing_above_sends_no_round_and_one_that_was_under_a_dron
             learner.on_tick(tick)
             k += 1
 
+    return learner, trainer, fly, settings.t_col
+
+
+def test_a_drone_with_nothing_above_sends_no_round_and_one_that_was_under_a_drone_does():
+    """A fleet's top drone has no wake to learn: its rounds would only take the shared trainer from the drones
+    below (on the 7-pass crossing they doubled the flight's wall time, and every one was rejected)."""
+    above = {"d": NONE_ABOVE}
+    learner, trainer, fly, t_col = _wake_learner(above)
     fly(3 * t_col + 0.1)
     assert learner.recorder.windows == 3 and trainer.requests == []
     assert learner.stats.windows_no_drone_above == 3 and learner.summary_fields()["windows_no_drone_above"] == 3
@@ -268,6 +275,22 @@ def test_a_drone_with_nothing_above_sends_no_round_and_one_that_was_under_a_dron
     assert len(trainer.requests) == 1 and np.any(trainer.requests[0].window.nb != NONE_ABOVE)
     fly(t_col)  # the next window had nothing above, but its replay holds the pass: sent too
     assert len(trainer.requests) == 2 and not np.any(trainer.requests[1].window.nb != NONE_ABOVE)
+    assert learner.stats.windows_one_point_above == 0
+
+
+def test_a_drone_that_stays_at_one_point_of_the_wake_sends_no_round_until_the_drone_above_moves():
+    """A stacked pair on one pattern: the drone above wanders 2 cm about one point 0.5 m up, on every side. A network
+    learns only a constant there (the layer's) and predicts the wake on after the drone above has gone."""
+    rng = np.random.default_rng(0)
+    above = {"d": lambda k: np.array([0.01 * np.cos(0.01 * k), 0.01 * np.sin(0.01 * k), 0.5]) + rng.uniform(-0.005, 0.005, 3)}
+    learner, trainer, fly, t_col = _wake_learner(above)
+    fly(3 * t_col + 0.1)
+    assert learner.recorder.windows == 3 and trainer.requests == []
+    assert learner.stats.windows_one_point_above == 3 and learner.summary_fields()["windows_one_point_above"] == 3
+    assert learner.stats.windows_no_drone_above == 0
+    above["d"] = lambda k: np.array([0.002 * (k % 400), 0.0, 0.5])  # it flies off sideways, 0.8 m in a second
+    fly(t_col)
+    assert len(trainer.requests) == 1
 
 
 def test_wake_only_without_the_neighbour_input_is_refused_in_one_line():

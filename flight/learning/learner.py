@@ -46,7 +46,7 @@ from cfknode.flight.learning.gate import GateVerdict
 from cfknode.flight.learning.install import GateRules, TrainerJudging, held_out_tail, install_steps
 from cfknode.flight.learning.latency import applied_latency
 from cfknode.flight.learning.rejudge import FlyingRejudge
-from cfknode.flight.learning.windows import TickLike, WindowRecorder, nothing_above
+from cfknode.flight.learning.windows import TickLike, WindowRecorder, nothing_to_learn_above
 from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
 from cfknode.models.modelfile import ModelFile
 from cfknode.models.residual_check import SCORE_KEY
@@ -212,8 +212,8 @@ class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
             return
         earlier = [w for w in self._recent if w.index < window.index]
         replay = tuple(earlier[-self.s.replay_windows :]) if self.s.replay_windows > 0 else ()
-        if self.s.wake_only and nothing_above((window, *replay)):
-            self.stats.windows_no_drone_above += 1  # a network of the neighbour alone learns nothing there
+        if self.s.wake_only and (count := nothing_to_learn_above((window, *replay))):
+            setattr(self.stats, count, getattr(self.stats, count) + 1)  # a network of the neighbour alone learns nothing
             return
         self._round += 1
         holdout = self.s.holdout_fraction if (self.s.paper_lockstep and self.s.gate) else 0.0

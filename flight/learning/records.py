@@ -156,6 +156,7 @@ class OnlineStats:
     windows_superseded: int = 0  # finished windows replaced by a newer one before being sent
     windows_stale: int = 0  # finished windows dropped because the model changed before they were sent
     windows_no_drone_above: int = 0  # wake-only windows not sent: no drone was above in them nor in their replay
+    windows_one_point_above: int = 0  # wake-only windows not sent: the drone above stayed at one point of its wake
     pace_wait_s: float = 0.0  # wall time spent holding the simulation back for honest latency
     max_slice_s: float = 0.0  # longest gate/swap slice between two ticks
     late_ticks: int = 0  # ticks whose compute plus the learner's install work before them exceeded the period

@@ -103,6 +103,7 @@ class LearnerReports:
             "windows_superseded": s.windows_superseded,
             "windows_stale": s.windows_stale,
             "windows_no_drone_above": s.windows_no_drone_above,
+            "windows_one_point_above": s.windows_one_point_above,
             "partial_windows_discarded": self.recorder.discarded,
             "windows_unsettled": self.recorder.unsettled,
             "swap_median_ms": _ms(np.median(s.swap_s)) if s.swap_s else None,

@@ -14,6 +14,7 @@ import numpy as np
 from cfknode.flight.adaptation.loop import GROUND_MARGIN, body_z
 from cfknode.flight.learning.command_lag import CommandLag
 from cfknode.flight.neighbours import NONE_ABOVE
+from cfknode.models.input_layouts import NEIGHBOUR_SCALE_FLOOR, about_the_axis
 from cfknode.models.trainer_process import Window
 
 # Same rules as offline training data (cfknode.app.logs.training_data, which imports torch through its Segment):
@@ -229,11 +230,22 @@ class WindowRecorder:
         self._n = keep
 
 
-def nothing_above(windows: tuple[Window, ...]) -> bool:
-    """Whether no drone was above at any tick of these windows (their neighbour input always ``NONE_ABOVE``, or not
-    recorded): a fleet's top drone. Networks of the neighbour alone learn nothing from them, and their rounds would
-    only take the shared trainer from the drones below (docs/fleet.md#wake-only)."""
-    return not any(w.nb is not None and np.any(w.nb != NONE_ABOVE) for w in windows)
+def nothing_to_learn_above(windows: tuple[Window, ...]) -> str:
+    """Why a wake-only round on these windows would learn nothing, as the summary's count names it; "" if it can.
+
+    ``windows_no_drone_above``: no drone was above at any tick (the neighbour input always ``NONE_ABOVE``, or not
+    recorded), a fleet's top drone. ``windows_one_point_above``: the drone above stayed at one point of its wake
+    (its horizontal distance and height, as the networks see them, each within ``NEIGHBOUR_SCALE_FLOOR``), a stacked
+    pair on one pattern. A network of the neighbour alone then learns a constant the fast layer holds, and
+    extrapolates it: when the drone above flies off, it predicts the wake still on. Skipped rounds also leave the
+    shared trainer to the drones below (docs/fleet.md#wake-only)."""
+    rows = [w.nb for w in windows if w.nb is not None]
+    if not any(np.any(nb != NONE_ABOVE) for nb in rows):
+        return "windows_no_drone_above"
+    seen = about_the_axis(np.concatenate(rows))
+    if len(rows) == len(windows) and np.all(np.ptp(seen, axis=0) < NEIGHBOUR_SCALE_FLOOR):
+        return "windows_one_point_above"
+    return ""
 
 
-__all__ = ["ELIGIBLE_SOURCES", "MIN_HEIGHT", "TickLike", "WindowRecorder", "nothing_above"]
+__all__ = ["ELIGIBLE_SOURCES", "MIN_HEIGHT", "TickLike", "WindowRecorder", "nothing_to_learn_above"]
