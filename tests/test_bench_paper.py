@@ -13,6 +13,7 @@ import json
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from cfknode.app.bench.paper.protocol import MassEvent
@@ -58,9 +59,14 @@ def test_quick_bench_json_holds_every_run(quick_bench):
     for r in runs.values():
         assert math.isfinite(r["mse"]) and r["mse"] > 0 and r["failed_solves"] == 0
         assert r["mse"] == pytest.approx(sum(r["mse_per_axis"]) / 3, rel=1e-9)
-    # The paper's loop trains after every window from the first event on (7 on this plan); cfknode's gates its swaps.
+    # The paper's loop trains after every window from the first event on (7 windows of 0.15 s on this plan), and
+    # swaps each in; cfknode's gates its swaps.
     paper_rounds = runs[("paper", "knode_online")]["rounds"]
     assert len(paper_rounds) >= 5 and all(r["accepted"] for r in paper_rounds)
+    ends = np.array([r["window_end"] for r in paper_rounds])
+    window = float(np.median(np.diff(ends)))
+    assert np.all(np.abs(np.diff(ends) - window) < 0.01)  # no window skipped
+    assert ends[0] - SHORT["events"][0].time < window + 0.01 and SHORT["duration"] - ends[-1] < window + 0.01
     default_rounds = runs[("default", "knode_online")]["rounds"]
     assert any(not r["accepted"] for r in default_rounds) and any(r["swap"] is not None for r in default_rounds)
     # Preview: cfknode's nominal MPC tracks far better than the paper's constant-point MPC.
