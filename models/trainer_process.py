@@ -1,9 +1,10 @@
 """The online trainer: a child process that trains one new KNODE network per data window (the paper's Algorithm 2).
 
-The flight process starts it with the ``spawn`` context and talks to it over one duplex
+The flight process starts it (``cfknode.flight.learning.trainer_client``: forked from a server that
+has imported ``CHILD_IMPORTS`` on Linux, spawned elsewhere) and talks to it over one duplex
 ``multiprocessing`` pipe. This module's top level is torch-free, so the flight process can name
 ``trainer_main`` as the process target and use the message types below; torch is imported
-only inside ``trainer_main``, i.e. only in the child.
+only in the child (and in the server it is forked from).
 
 Protocol (every message a picklable frozen dataclass of numpy arrays and plain values):
 - child -> parent, once: ``TrainerReady`` after torch is imported and one warm-up round has run
@@ -52,6 +53,10 @@ CRASH_EXIT_CODE = 70  # what an injected crash exits with (EX_SOFTWARE)
 # but only the flight process decides when the flight ends; it stops the trainer over the
 # pipe (or kills it).
 IGNORED_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+# What a trainer imports before its first round: about 3 s of CPU in a fresh interpreter, which a
+# trainer forked from a server that imported them once skips. ``torch._dynamo`` is torch.optim's
+# (its first step imports it, 1.1-1.5 s); a name this torch lacks is skipped.
+CHILD_IMPORTS = ("torch", "torch._dynamo", "cfknode.models.knode", "cfknode.models.training")
 # Online input scales are floored at the flight envelope, not one window's spread: a 0.5 s
 # window barely varies (v, u), and standardising by that spread lets the network fit steep,
 # spurious slopes (measured: dr/dv up to +2.4 1/s, dr/du down to -0.9 where the truth was 0
@@ -171,7 +176,7 @@ def trainer_main(conn: Connection, settings: TrainerSettings, tagged: bool = Fal
     TrainRequest)`` and its outcome goes back as ``(tag, TrainOutcome)``, in arrival order."""
     for sig in IGNORED_SIGNALS:  # first, before the slow torch import (see IGNORED_SIGNALS)
         signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, IGNORED_SIGNALS)  # blocked by the parent while spawning
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, IGNORED_SIGNALS)  # blocked by the parent while starting it
     if settings.nice > 0:
         # Before the torch import: it and the warm-up are the child's heaviest work while the flight
         # starts up. Only ever lower: raising a priority needs privileges and is not the trainer's to take.

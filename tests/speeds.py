@@ -375,6 +375,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_a_round_that_cannot_train_reports_an_error": FAST,
         "test_a_round_with_a_held_out_tail_and_a_replayed_window": FAST,
         "test_renormalise_keeps_the_function": FAST,
+        "test_trainers_are_spawned_where_forking_is_not_safe": FAST,
     },
     "test_oracle.py": {
         "*": FLIES,

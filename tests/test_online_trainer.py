@@ -1,20 +1,24 @@
-"""The online trainer (the paper's Algorithm 2): one round in-process, and the real spawned process with faults."""
+"""The online trainer (the paper's Algorithm 2): one round in-process, and the real trainer process with faults."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from cfknode.app.config import FaultInjection, load_config
-from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault
+from cfknode.flight.learning import trainer_client
+from cfknode.flight.learning.trainer_client import TrainerClient, TrainerFault, trainer_context
 from cfknode.models.knode import KnodeQueue, to_torch_queue
 from cfknode.models.modelfile import Normalisation
 from cfknode.models.residual_np import ResidualQueue
 from cfknode.models.trainer_process import (
+    CHILD_IMPORTS,
     CRASH_EXIT_CODE,
     TrainerReady,
     TrainOutcome,
@@ -100,7 +104,7 @@ def test_a_round_that_cannot_train_reports_an_error(settings) -> None:
     assert out.model is None and "no usable sample pairs" in out.error
 
 
-def test_the_spawned_trainer_trains_and_survives_a_crash(settings) -> None:
+def test_the_trainer_process_trains_and_survives_a_crash(settings) -> None:
     client = TrainerClient(dataclasses.replace(settings, inject=FaultInjection(crash_at_round=2, hang_at_round=0,
                                                                                nan_at_round=3)), timeout=30.0)
     client.start()
@@ -128,6 +132,30 @@ def test_the_spawned_trainer_trains_and_survives_a_crash(settings) -> None:
     finally:
         client.close()
     assert client.state == "stopped"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="trainers are forked from a server on Linux only")
+def test_trainers_are_forked_from_one_server_that_imported_torch(settings) -> None:
+    parents = []
+    for _ in range(2):  # a flight's trainer and the next one's (or a restart)
+        client = TrainerClient(settings, timeout=30.0)
+        client.start()
+        try:
+            assert client.wait_ready(120.0)
+            with open(f"/proc/{client.pid}/stat") as f:
+                parents.append(int(f.read().rsplit(")", 1)[1].split()[1]))
+        finally:
+            client.close()
+    assert parents[0] == parents[1] != os.getpid()
+    with open(f"/proc/{parents[0]}/cmdline", "rb") as f:
+        server = f.read().decode()
+    assert "multiprocessing.forkserver" in server
+    assert all(repr(name) in server for name in (*CHILD_IMPORTS, *settings.preload))
+
+
+def test_trainers_are_spawned_where_forking_is_not_safe(monkeypatch) -> None:
+    monkeypatch.setattr(trainer_client.sys, "platform", "darwin")
+    assert trainer_context().get_start_method() == "spawn"
 
 
 def test_a_hung_trainer_is_reported_after_the_timeout(settings) -> None:
