@@ -37,6 +37,10 @@ class WallClock:
     def now(self) -> float:
         return time.monotonic() - self._t0
 
+    def monotonic(self, t: float) -> float:
+        """The ``time.monotonic()`` of this clock's time ``t``."""
+        return self._t0 + t
+
     async def sleep_until(self, t: float) -> None:
         delay = t - self.now()
         # Always yield, so other tasks (dashboard, I/O) run even when the loop is late.

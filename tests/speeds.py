@@ -419,6 +419,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
     "test_setpoint_reading.py": FAST,
     "test_sim_crazyflie.py": FAST,
     "test_sim_firmware.py": FAST,
+    "test_sim_mocap.py": FAST,
     "test_sim_plant.py": {
         "*": FLIES,
         "test_attitude_gain_scales_the_angle_the_firmware_reaches": FAST,

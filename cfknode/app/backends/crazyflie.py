@@ -9,7 +9,7 @@ hands the firmware back and the mocap is closed.
 
 A robot whose URI is ``sim://N`` flies the simulator through exactly this code: the
 simulator is registered behind cflib's ``sim://`` driver, stepped against the wall clock,
-and serves the ``motioncapture`` object API (``SimulatedMotionCapture``) to the same
+and serves the ``motioncapture`` object API (``SimulatedMotionCaptureClient``) to the same
 reader thread a Vicon would feed. ``cf_session(cfg)`` picks the right one.
 """
 
@@ -215,18 +215,6 @@ def _snapshot(cfg: Config, robot: Robot, radio: HardwareRadio, mocap: Motioncapt
 # --- the simulator behind the hardware path ------------------------------------------------------
 
 
-class SimulatedMotionCapture(SimulatedMotionCaptureClient):
-    """The ``motioncapture`` object API over one simulator (backends/sim_mocap.py): frame rate,
-    noise, latency and dropouts from ``SimulatedMocap``; a dropped frame arrives without the body."""
-
-    def __init__(
-        self, sim: Any, body_name: str, *, rate_hz: float, position_noise: float = 0.0,
-        attitude_noise: float = 0.0, latency: float = 0.0, dropout_prob: float = 0.0, seed: int = 0,
-    ) -> None:
-        super().__init__({body_name: sim}, rate_hz=rate_hz, position_noise=position_noise,
-                         attitude_noise=attitude_noise, latency=latency, dropout_prob=dropout_prob, seed=seed)
-
-
 @dataclass(frozen=True)
 class SimulatedHardware:
     sim: Any  # SimCrazyflie
@@ -254,14 +242,14 @@ def simulated_hardware(cfg: Config, robot: Robot) -> Iterator[SimulatedHardware]
     register_simulator(robot.uri, sim)
     clock = WallClock()
     stepper = RealtimeStepper(sim, clock.now).start()
-    served: list[SimulatedMotionCapture] = []
+    served: list[SimulatedMotionCaptureClient] = []
 
-    def connect(mocap_type: str, mocap_cfg: dict[str, str]) -> SimulatedMotionCapture:
+    def connect(mocap_type: str, mocap_cfg: dict[str, str]) -> SimulatedMotionCaptureClient:
         s = cfg.sim
-        mc = SimulatedMotionCapture(
-            sim, robot.name, rate_hz=cfg.hardware.mocap_rate_hz, position_noise=s.mocap_position_noise,
+        mc = SimulatedMotionCaptureClient(
+            {robot.name: sim}, rate_hz=cfg.hardware.mocap_rate_hz, position_noise=s.mocap_position_noise,
             attitude_noise=s.mocap_attitude_noise, latency=s.mocap_latency, dropout_prob=s.mocap_dropout_prob,
-            seed=s.seed,
+            seed=s.seed, frame_time=clock.monotonic,  # the simulator's time is this clock's (the stepper's)
         )
         served.append(mc)
         return mc
@@ -349,7 +337,7 @@ def describe(hw: HardwareBackend) -> str:
 
 
 __all__ = [
-    "CrazyflieBackend", "HARDWARE_ERRORS", "HardwareBackend", "RobotLink", "SimulatedHardware", "SimulatedMotionCapture",
+    "CrazyflieBackend", "HARDWARE_ERRORS", "HardwareBackend", "RobotLink", "SimulatedHardware",
     "cf_session", "connect_robot", "describe", "firmware_params", "flight_config", "hardware_backend", "robot_for",
     "simulated_hardware",
 ]

@@ -77,7 +77,8 @@ def simulated_lab(cfg: Config, robots: Sequence[Robot]) -> Iterator[SimulatedLab
             client = SimulatedMotionCaptureClient(
                 {r.name: sim for r, sim in zip(robots, sims)}, rate_hz=cfg.hardware.mocap_rate_hz,
                 position_noise=s.mocap_position_noise, attitude_noise=s.mocap_attitude_noise,
-                latency=s.mocap_latency, dropout_prob=s.mocap_dropout_prob, seed=s.seed)
+                latency=s.mocap_latency, dropout_prob=s.mocap_dropout_prob, seed=s.seed,
+                frame_time=clock.monotonic)  # the world's time is this clock's (the stepper's)
             served.append(client)
             return client
 
