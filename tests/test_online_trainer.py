@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing.forkserver
 import os
 import sys
 
@@ -151,6 +152,22 @@ def test_trainers_are_forked_from_one_server_that_imported_torch(settings) -> No
         server = f.read().decode()
     assert "multiprocessing.forkserver" in server
     assert all(repr(name) in server for name in (*CHILD_IMPORTS, *settings.preload))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="trainers are forked from a server on Linux only")
+def test_a_trainer_is_spawned_when_no_fork_server_can_be_reached(settings, monkeypatch) -> None:
+    def unreachable(fds):
+        raise OSError("no fork server")
+
+    monkeypatch.setattr(multiprocessing.forkserver, "connect_to_new_process", unreachable)
+    client = TrainerClient(settings, timeout=30.0)
+    client.start()
+    try:
+        assert client.wait_ready(120.0) and client.state == "idle"
+        with open(f"/proc/{client.pid}/stat") as f:
+            assert int(f.read().rsplit(")", 1)[1].split()[1]) == os.getpid()  # this process's own child
+    finally:
+        client.close()
 
 
 def test_trainers_are_spawned_where_forking_is_not_safe(monkeypatch) -> None:

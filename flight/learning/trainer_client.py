@@ -73,8 +73,6 @@ class TrainerClient:
         """Start a trainer (non-blocking: it reports ``TrainerReady`` when torch is up)."""
         self._reap()
         parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=trainer_main, args=(child, self.settings, self.tagged), name="cfknode-trainer",
-                                 daemon=True)
         # The child inherits this thread's signal mask: with the stop signals blocked it cannot
         # die of a Ctrl-C meant for the flight before ``trainer_main`` ignores them. The parent
         # loses none: blocked here, they wait (or reach another thread) and are handled as usual.
@@ -83,7 +81,14 @@ class TrainerClient:
         resource_tracker.ensure_running()
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, IGNORED_SIGNALS)
         try:
-            proc.start()
+            try:
+                proc = self._launch(child)
+            except OSError:
+                if self._ctx.get_start_method() != "forkserver":
+                    raise
+                # No fork server here (its socket or process could not be made): spawn, as elsewhere.
+                self._ctx = multiprocessing.get_context("spawn")
+                proc = self._launch(child)
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child.close()  # only the child holds it now, so its death reads as EOF here
@@ -92,6 +97,12 @@ class TrainerClient:
         self.state = "starting"
         self.start_wall = self._wall()
         self.starts += 1
+
+    def _launch(self, child: Any) -> Any:
+        proc = self._ctx.Process(target=trainer_main, args=(child, self.settings, self.tagged), name="cfknode-trainer",
+                                 daemon=True)
+        proc.start()
+        return proc
 
     def wait_ready(self, timeout: float) -> bool:
         """Block until the trainer is up (pre-flight); False on timeout or failure, with
