@@ -11,8 +11,8 @@ import multiprocessing
 import signal
 import sys
 import time
-from multiprocessing import resource_tracker
 from dataclasses import dataclass
+from multiprocessing import resource_tracker
 from typing import Any, Callable
 
 from cfknode.models.trainer_process import (
@@ -236,7 +236,7 @@ def trainer_context(preload: tuple[str, ...] = ()) -> Any:
     if not sys.platform.startswith("linux"):
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
-    # Read when the server starts (the first trainer's start), by name; later calls change nothing.
+    # Read when the server starts (the process's first trainer, or the next after a server that died).
     ctx.set_forkserver_preload([*CHILD_IMPORTS, *preload])
     return ctx
 

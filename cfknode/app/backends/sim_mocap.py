@@ -50,7 +50,7 @@ class SimulatedMotionCaptureClient:
         self._cond = threading.Condition()
         self._last_pose: dict[str, Any] = {name: None for name in self._sims}  # the newest pose delivered
         self._last_dropouts = {name: 0 for name in self._sims}
-        # Sent, not yet read: bounded as a pipe is (the oldest go first if the reader stops reading).
+        # Sent, not yet read: bounded as a pipe is (a reader that stops reading loses the oldest).
         self._ready: deque[tuple[float, dict[str, SdkRigidBody]]] = deque(maxlen=MAX_UNREAD_FRAMES)
         self._bodies: dict[str, SdkRigidBody] = {}
         self.frame_monotonic: float | None = None  # when the frame being read was sent
