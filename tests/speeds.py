@@ -376,6 +376,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_a_round_with_a_held_out_tail_and_a_replayed_window": FAST,
         "test_renormalise_keeps_the_function": FAST,
         "test_trainers_are_spawned_where_forking_is_not_safe": FAST,
+        "test_a_trainer_that_cannot_re_import_a_script_read_from_stdin_says_so": FAST,
     },
     "test_oracle.py": {
         "*": FLIES,

@@ -170,6 +170,13 @@ def test_a_trainer_is_spawned_when_no_fork_server_can_be_reached(settings, monke
         client.close()
 
 
+def test_a_trainer_that_cannot_re_import_a_script_read_from_stdin_says_so(monkeypatch) -> None:
+    monkeypatch.setattr(sys.modules["__main__"], "__file__", "<stdin>", raising=False)
+    monkeypatch.setattr(sys.modules["__main__"], "__spec__", None, raising=False)
+    problem = trainer_client._start_failure(TrainerFault("crash", "trainer process exited (code 1)"))
+    assert "<stdin> is not a file" in problem and "\n" not in problem
+
+
 def test_trainers_are_spawned_where_forking_is_not_safe(monkeypatch) -> None:
     monkeypatch.setattr(trainer_client.sys, "platform", "darwin")
     assert trainer_context().get_start_method() == "spawn"

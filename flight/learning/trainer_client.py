@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import os
 import signal
 import sys
 import time
@@ -255,10 +256,24 @@ def refuse_in_spawned_import() -> None:
 
 def _start_failure(fault: TrainerFault) -> str:
     """One line for a trainer that died while starting: usually an unguarded calling script."""
+    script = _unreadable_main()
+    if fault.kind == "crash" and script:
+        return (f"the online trainer could not start ({fault.reason}): the trainer process re-imports the calling "
+                f"script, and {script} is not a file; run it from a file")
     if fault.kind == "crash":
         return (f"the online trainer could not start ({fault.reason}): a script that learns online must run "
                 "its flight under `if __name__ == \"__main__\":`, because the trainer process re-imports it")
     return f"the online trainer could not start: {fault.reason}"
+
+
+def _unreadable_main() -> str:
+    """The calling script's name when a child process cannot re-import it (``python -`` reads it from
+    stdin: multiprocessing looks for a file ``<stdin>``); "" otherwise."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if path is None or getattr(main, "__spec__", None) is not None or os.path.isfile(path):
+        return ""
+    return path
 
 
 __all__ = ["TrainerClient", "TrainerFault", "refuse_in_spawned_import", "trainer_context"]
