@@ -256,14 +256,13 @@ def refuse_in_spawned_import() -> None:
 
 def _start_failure(fault: TrainerFault) -> str:
     """One line for a trainer that died while starting: usually an unguarded calling script."""
-    script = _unreadable_main()
-    if fault.kind == "crash" and script:
+    if fault.kind != "crash":
+        return f"the online trainer could not start: {fault.reason}"
+    if script := _unreadable_main():
         return (f"the online trainer could not start ({fault.reason}): the trainer process re-imports the calling "
                 f"script, and {script} is not a file; run it from a file")
-    if fault.kind == "crash":
-        return (f"the online trainer could not start ({fault.reason}): a script that learns online must run "
-                "its flight under `if __name__ == \"__main__\":`, because the trainer process re-imports it")
-    return f"the online trainer could not start: {fault.reason}"
+    return (f"the online trainer could not start ({fault.reason}): a script that learns online must run "
+            "its flight under `if __name__ == \"__main__\":`, because the trainer process re-imports it")
 
 
 def _unreadable_main() -> str:
