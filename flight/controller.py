@@ -251,7 +251,12 @@ class Controller:
         shaped = shape_force(acc, self.vehicle, settings, shaping)
         setpoint = force_to_setpoint(shaped.force, float(ref.yaw[0]), state.q, self.vehicle, settings)
         if adapt is not None:
-            self._command_flown = (np.concatenate((obs.p, obs.v)), shaped, setpoint.thrust, model_residual)
+            x_obs = np.concatenate((obs.p, obs.v))
+            if model_residual is not None and obs is not state and self.model is not None:
+                # Planned from a state predicted ahead (the command delay): the layer is told what the model gives
+                # where the vehicle was measured, not the plan's linearisation stretched 0.1 s back to there.
+                model_residual = self.model.residual_at(x_obs, np.asarray(shaped.applied_acc, dtype=float))
+            self._command_flown = (x_obs, shaped, setpoint.thrust, model_residual)
             if defer:
                 self._layer_input = (t, obs, pose_fresh, phase)
             elif not self.prepares_after_send:

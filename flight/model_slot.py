@@ -53,7 +53,8 @@ class ModelSlot:
         # A fleet drone's neighbour input (flight/neighbours.py ``NeighbourFeed``; docs/fleet.md#neighbour-input):
         # a model that takes it is linearised at the neighbour's positions over the horizon. None: none.
         self.neighbour: Any = None
-        # Where the drone above was at the last linearisation's first node (None: not given to the model): the
+        # Where the drone above was at the last linearisation's first node, or at the measured state's time once
+        # the layer was told the model there (``residual_at``; None: not given to the model): the
         # fast layer re-bases a swap at the positions the flying model saw (flight/adaptation/recent.py).
         self.last_neighbour: np.ndarray | None = None
 
@@ -63,6 +64,14 @@ class ModelSlot:
 
     def residual(self, x_nodes: np.ndarray, u_nodes: np.ndarray) -> ResidualLinearisation | None:
         """The affine residual at the given nodes (N, 6) and (N, 3); None when flying nominal."""
+        return self._linearise(x_nodes, u_nodes, measured=False)
+
+    def residual_at(self, x: np.ndarray, u: np.ndarray) -> ResidualLinearisation | None:
+        """``residual`` at the measured state x (6,), u (3,) when the plan starts ahead of it (the command delay):
+        one stage, exact there, with the drone above where it is now (``last_neighbour`` too)."""
+        return self._linearise(np.asarray(x, dtype=float)[None], np.asarray(u, dtype=float)[None], measured=True)
+
+    def _linearise(self, x_nodes: np.ndarray, u_nodes: np.ndarray, measured: bool) -> ResidualLinearisation | None:
         self.last_neighbour = None
         if self._model is None or not getattr(self._model, "takes_neighbour", False):
             # Where the drone above is, though nothing flown sees it: a first swap to a model that does is re-based
@@ -74,7 +83,7 @@ class ModelSlot:
                 return None
         nb = None
         if self.neighbour is not None and getattr(self._model, "takes_neighbour", False):
-            nb = self.neighbour.horizon(x_nodes)
+            nb = self.neighbour.horizon(x_nodes, measured)
             self.last_neighbour = None if nb is None else nb[0]
         c, jx, ju = self._model.linearise(x_nodes, u_nodes) if nb is None else \
             self._model.linearise(x_nodes, u_nodes, nb)  # type: ignore[call-arg]

@@ -230,3 +230,59 @@ def test_a_vertical_delay_of_its_own_takes_the_vertical_reference_from_there():
     z = -np.arange(6.0).reshape(2, 3)
     np.testing.assert_array_equal(_with_z(xy, z), [[0.0, 1.0, -2.0], [3.0, 4.0, -5.0]])
     assert xy[0, 2] == 2.0  # the planned reference is a copy
+
+
+class _Bump:
+    """A residual model with a narrow vertical bump in x (a jet 5 cm wide), linearised exactly at its nodes."""
+
+    width = 0.05
+
+    def evaluate(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        x2 = np.atleast_2d(x)
+        out = np.zeros((x2.shape[0], 3))
+        out[:, 2] = -3.0 * np.exp(-x2[:, 0] ** 2 / (2.0 * self.width ** 2))
+        return out if np.ndim(x) == 2 else out[0]
+
+    def linearise(self, x_nodes: np.ndarray, u_nodes: np.ndarray):
+        value = self.evaluate(x_nodes, u_nodes)
+        jx = np.zeros((x_nodes.shape[0], 3, 6))
+        jx[:, 2, 0] = -value[:, 2] * x_nodes[:, 0] / self.width ** 2
+        ju = np.zeros((x_nodes.shape[0], 3, 3))
+        c = value - np.einsum("kij,kj->ki", jx, x_nodes)
+        return c, jx, ju
+
+
+def test_the_layer_is_told_the_models_residual_where_the_vehicle_was_measured():
+    # Planning from the state 0.1 s ahead, the model is linearised at the plan's nodes; for a narrow term (a
+    # wake) that slope stretched back to the measured state is far off (here -2.0 m/s^2 where the model says
+    # -3), and the layer read the difference as a disturbance. It is given the model's value there.
+    import cfknode
+    from cfknode.flight.model_slot import ModelSlot
+
+    cfg = load_config(overrides={"controller.adaptation": "dob"})
+    ctrl = cfknode.Controller(cfg.controller, cfg.vehicle, ground_z=0.0)
+    ctrl.model = ModelSlot(_Bump(), version=1)
+    flown = []
+    after = ctrl.adaptation.after_command
+
+    def spy(x0, shaped, thrust, residual):
+        u = np.asarray(shaped.applied_acc, dtype=float)
+        flown.append((x0, residual.c[0] + residual.jx[0] @ x0 + residual.ju[0] @ u))
+        return after(x0, shaped, thrust, residual)
+
+    ctrl.adaptation.after_command = spy
+    n = cfg.controller.horizon + 1
+    hover = cfknode.RefSamples(ctrl.preview_times(0.0), np.tile([0.0, 0.0, 1.0], (n, 1)), np.zeros((n, 3)),
+                               np.zeros((n, 3)), np.zeros(n))
+    measured = _est(0.0, p=(0.0, 0.0, 1.0), v=(1.0, 0.0, 0.0))
+    ahead = _est(0.0, p=(0.1, 0.0, 1.0), v=(1.0, 0.0, 0.0))
+    for k in range(3):  # from the second tick the model is linearised at the last plan's nodes, ahead
+        ctrl.step(0.0025 * k, ahead, hover, observed=measured)
+        ctrl.prepare()
+    x0, told = flown[-1]
+    np.testing.assert_allclose(x0, [0.0, 0.0, 1.0, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(told, _Bump().evaluate(x0, np.zeros(3)), atol=1e-9)
+    # The plan's own linearisation, stretched to the measured state, is far from it.
+    nodes = ctrl._x_pred[:-1]
+    c, jx, _ = _Bump().linearise(nodes, np.zeros((nodes.shape[0], 3)))
+    assert abs((c[0] + jx[0] @ x0)[2] - told[2]) > 0.9
