@@ -27,11 +27,14 @@ NONE_ABOVE = np.array([0.0, 0.0, 1.5])  # d with no drone above: the wake is gon
 class NeighbourBoard:
     """Every fleet drone's latest position (and time), and each drone's nearest drone above."""
 
-    def __init__(self, refs: Sequence[Any], period: float, node_dt: float, nodes: int) -> None:
+    def __init__(self, refs: Sequence[Any], period: float, node_dt: float, nodes: int, lead: float = 0.0) -> None:
+        """``lead``: s the MPC's first node is ahead of the drone's measured state (``estimator.command_delay``: it
+        plans from the state predicted that far ahead), so the drone above is taken that much later too."""
         self._refs = list(refs)
         self._p: list[np.ndarray | None] = [None] * len(self._refs)
         self._t = [0.0] * len(self._refs)
         self.period = period
+        self.lead = lead
         self._offsets = node_dt * np.arange(nodes)
 
     def tap(self, i: int) -> "_BoardTap":
@@ -82,13 +85,14 @@ class NeighbourFeed:
         j = self._board.above(self.index, p)
         return NONE_ABOVE.copy() if j is None else self._board.position(j) - p
 
-    def horizon(self, x_nodes: np.ndarray) -> np.ndarray | None:
-        """The neighbour's world position at each node (N, 3), from this tick on; None with no drone above."""
+    def horizon(self, x_nodes: np.ndarray, measured: bool = False) -> np.ndarray | None:
+        """The neighbour's world position at each node (N, 3), from this tick (plus the plan's lead) on; None with no
+        drone above. ``measured``: the nodes start at the measured state (no lead)."""
         j = self._board.above(self.index, x_nodes[0, 0:3])
         if j is None:
             return None
         b = self._board
-        return b.moved(j, x_nodes.shape[0], b._t[self.index] + b.period)
+        return b.moved(j, x_nodes.shape[0], b._t[self.index] + b.period + (0.0 if measured else b.lead))
 
 
 class _BoardTap:

@@ -122,6 +122,34 @@ def test_the_board_gives_the_nearest_drone_above_and_moves_it_along_its_referenc
     assert board.feed(2).horizon(nodes + [0, 0, 1.5, 0, 0, 0]) is None
 
 
+def test_a_plan_that_starts_ahead_takes_the_drone_above_as_far_ahead():
+    # With estimator.command_delay the MPC plans from the state predicted that far ahead: its nodes are later than
+    # the measured state, so the drone above is taken later too (0.1 s at 0.4 m/s is 4 cm, most of a 6 cm jet);
+    # the fast layer's view of the model, at the measured state, takes it where it is now.
+    board = NeighbourBoard([_Ref(), _Ref()], period=0.01, node_dt=0.05, nodes=3, lead=0.1)
+    board.update(0, 1.0, np.array([0.0, 0.0, 0.5]))
+    board.update(1, 1.0, np.array([0.1, 0.0, 1.0]))
+    nodes = np.tile([0.0, 0.0, 0.5, 0.0, 0.0, 0.0], (3, 1))
+    assert np.allclose(board.feed(0).horizon(nodes)[:, 0], 0.1 + 0.5 * (0.01 + 0.1 + 0.05 * np.arange(3)))
+    assert np.allclose(board.feed(0).horizon(nodes[:1], measured=True)[:, 0], 0.1 + 0.5 * 0.01)
+    slot = ModelSlot(ResidualQueue.from_model_file(from_torch_queue(neighbour_queue(9))))
+    slot.neighbour = board.feed(0)
+    x, u = nodes, np.zeros((3, 3))
+    slot.residual(x, u)
+    assert np.isclose(slot.last_neighbour[0], 0.1 + 0.5 * 0.11)
+    at = slot.residual_at(x[0], u[0])
+    assert at.c.shape == (1, 3) and np.isclose(slot.last_neighbour[0], 0.1 + 0.5 * 0.01)
+
+
+def test_the_fleets_board_leads_by_the_command_delay():
+    from cfknode.app.fleet.flight import neighbour_board
+
+    cfg = load_config(overrides={"fleet.neighbour_input": True, "estimator.command_delay": 0.08})
+    board = neighbour_board(cfg, [_Ref(), _Ref()], [ModelSlot(None), ModelSlot(None)])
+    assert board is not None and board.lead == 0.08
+    assert neighbour_board(load_config(overrides={"fleet.neighbour_input": True}), [_Ref()], [ModelSlot(None)]).lead == 0.0
+
+
 def _pair(above_x: float):
     """Drone 0 at 0.5 m, drone 1 0.5 m above it and ``above_x`` aside; drone 0's nodes and commands."""
     board = NeighbourBoard([_Ref(), _Ref()], period=0.01, node_dt=0.05, nodes=3)

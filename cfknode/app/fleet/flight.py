@@ -393,7 +393,7 @@ def neighbour_board(cfg: Config, refs: Sequence[HoldableReference], slots: Seque
     if not cfg.fleet.neighbour_input or all(s is None for s in slots):
         return None
     c = cfg.controller
-    board = NeighbourBoard(refs, 1.0 / c.rate_hz, c.dt, c.horizon)
+    board = NeighbourBoard(refs, 1.0 / c.rate_hz, c.dt, c.horizon, lead=cfg.estimator.command_delay)
     for i, slot in enumerate(slots):
         if slot is not None:
             slot.neighbour = board.feed(i)
