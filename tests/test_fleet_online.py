@@ -116,3 +116,26 @@ def test_a_shared_trainer_answers_each_port_and_a_crash_loses_only_the_queued_ro
         assert wait(a).version == 12 and shared.client.starts == 2
     finally:
         shared.close()
+
+
+def test_each_drone_keeps_the_model_it_learned_beside_the_log(flights) -> None:
+    # The next flight starts from it (--model): a fleet's drones each keep their own, named for the drone.
+    from pathlib import Path
+
+    from cfknode.models.modelfile import load_model
+
+    result = flights[0]
+    kept = 0
+    for d in result.drones:
+        model = d.learner.learned_model
+        if model is None:
+            assert "learned_model" not in d.summary.extra
+            continue
+        path = Path(d.summary.extra["learned_model"])
+        assert path == Path(result.log_path).with_suffix(f".{d.name}.learned.safetensors")
+        loaded = load_model(path)
+        assert len(loaded.networks) == len(model.networks)
+        assert all((a == b).all() for n, m in zip(loaded.networks, model.networks)
+                   for (a, _), (b, _) in zip(n.layers, m.layers))
+        kept += 1
+    assert kept >= 1

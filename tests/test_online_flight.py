@@ -248,3 +248,16 @@ def test_paper_lockstep_applies_each_model_at_its_window_end(tmp_path) -> None:
         if r.outcome == "swap":
             assert r.applied_t == pytest.approx(r.window[1])  # the simulation waited: zero sim-time latency
     assert all(math.isfinite(r.rmse_candidate) for r in rounds if r.outcome in ("swap", "reject"))
+
+
+def test_the_flight_keeps_the_model_it_learned_beside_its_log(online: Flight) -> None:
+    # What the next flight starts from (--model); a flight that ends on the nominal model writes none.
+    from pathlib import Path
+
+    from cfknode.models.modelfile import load_model
+
+    model = online.learner.learned_model
+    assert model is not None
+    path = Path(online.summary.extra["learned_model"])
+    assert path == Path(online.summary.log_path).with_suffix(".learned.safetensors")
+    assert len(load_model(path).networks) == len(model.networks)

@@ -342,3 +342,20 @@ def test_the_flying_model_keeps_an_axis_while_its_score_since_the_swap_is_above_
     assert np.array_equal(retired_axes(flown, np.array([0.06, 0.04, 0.01]), 0.05), [0.3, 0.0, 0.2])
     assert np.array_equal(retired_axes(flown, np.array([-0.2, 0.5, 0.0]), 0.05), [0.0, 0.1, 0.0])
     assert np.array_equal(retired_axes(np.zeros(3), np.ones(3), 0.05), np.zeros(3))  # an axis not flown stays so
+
+
+def test_a_learned_model_the_log_cannot_take_is_reported_not_raised(tmp_path) -> None:
+    from types import SimpleNamespace
+
+    from cfknode.app.learning import keep_learned_model
+    from cfknode.models.knode import from_torch_queue
+    from test_neighbour_input import neighbour_queue
+
+    learner = SimpleNamespace(learned_model=from_torch_queue(neighbour_queue(9)))
+    kept = keep_learned_model(learner, tmp_path / "flight.mcap")
+    assert kept == {"learned_model": str(tmp_path / "flight.learned.safetensors")}
+    (tmp_path / "flight.cf2.learned.safetensors").mkdir()  # something that is not a file stands in its place
+    missing = keep_learned_model(learner, tmp_path / "flight.mcap", "cf2")
+    assert list(missing) == ["learned_model_error"] and "not written" in missing["learned_model_error"]
+    assert keep_learned_model(SimpleNamespace(learned_model=None), tmp_path / "f.mcap") == {}
+    assert keep_learned_model(None, tmp_path / "f.mcap") == {}

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import math
 import warnings
+from pathlib import Path
 from typing import Any, Iterator
 
 from cfknode.app.config import Config, ConfigError
@@ -205,6 +206,23 @@ def online_session(
         speed = 2.0 * cfg.trajectory.speed + 0.5
         learner = OnlineLearner(learner_settings(cfg, bool(clock.lockstep), ground_z, speed), slot, trainer, log, base)
         yield learner
+
+
+def keep_learned_model(learner: OnlineLearner | None, log_path: Path, drone: str | None = None) -> dict[str, str]:
+    """Write the model a flight's online learning ended with beside its log, for the next flight to start from
+    (``--model``): ``<log>.learned.safetensors`` (``<log>.<drone>.learned.safetensors`` in a fleet). Returns the
+    summary's field: ``learned_model`` (the path) or ``learned_model_error``; none when nothing learned flies."""
+    model = learner.learned_model if learner is not None else None
+    if model is None:
+        return {}
+    from cfknode.models.modelfile import ModelFileError, save_model
+
+    stem = log_path.with_suffix("")
+    path = stem.with_name(f"{stem.name}{'.' + drone if drone else ''}.learned.safetensors")
+    try:
+        return {"learned_model": str(save_model(path, model))}
+    except (ModelFileError, OSError) as exc:  # the flight and its log stand; only this copy is missing
+        return {"learned_model_error": f"the learned model was not written: {exc}"}
 
 
 class _NoLog:

@@ -294,7 +294,7 @@ class _Kit:
 
 
 def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
-    from cfknode.app.learning import online_session
+    from cfknode.app.learning import keep_learned_model, online_session
 
     cfg = sess.config
     if request.trajectory is None:
@@ -359,6 +359,7 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
                     **_imu_fields(sess.radio, parts.imu is not None),
                     **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
+                    **keep_learned_model(online, flight_log.path),
                     "internal_errors": list(outcome.errors),
                     **({"foxglove_failures": view.failures} if view.failures else {}),
                     **after,

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cfknode.flight.learning.gate import GateVerdict
 from cfknode.models.trainer_process import TrainOutcome
 from cfknode.flight.learning.records import RoundRecord
+
+if TYPE_CHECKING:
+    from cfknode.models.modelfile import ModelFile
 
 
 
@@ -29,6 +32,14 @@ class LearnerReports:
 
     rounds: list[Any]
     log: Any
+
+    @property
+    def learned_model(self) -> ModelFile | None:
+        """The model file flying now if this flight's learning swapped it in (None: the nominal model, or the one
+        the flight started with): what the flight keeps for the next one."""
+        flying = self._flying  # type: ignore[attr-defined]
+        learned = any(file is flying.file for _, file in self.recent_models)  # type: ignore[attr-defined]
+        return flying.file if flying.model is not None and learned else None
 
     def _record(self, out: TrainOutcome, sent_t: float, latency: float, outcome: str, reason: str,
                 applied_t: float = math.nan, verdict: GateVerdict | None = None, received_t: float = math.nan) -> None:

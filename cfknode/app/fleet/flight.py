@@ -42,7 +42,7 @@ from cfknode.app.fleet.landing_order import StallHold
 from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
-from cfknode.app.learning import check_online, online_model_slot
+from cfknode.app.learning import check_online, keep_learned_model, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import (_controller_label, air_model_observers, build_controller, build_model_slot,
@@ -356,7 +356,7 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
     results = []
     for name, d, rec, sup, ref, learner, extra in zip(names, drones, records, sups, refs, learners, after):
         outcome = sup.outcome()
-        online = learner.summary_fields() if learner is not None else {}
+        online = {} if learner is None else {**learner.summary_fields(), **keep_learned_model(learner, flog.path, name)}
         summary = compute_summary(
             rec, window=ref.pattern_window, wall_time=rec.wall_time, log_path=str(flog.path),
             extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
