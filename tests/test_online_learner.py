@@ -306,7 +306,7 @@ def test_beside_the_layer_an_axis_the_flying_model_stops_earning_on_stops_flying
     from test_gate_transfer import LAYER_HZ
     from test_online_gate import linear_residual_model
 
-    from cfknode.models.residual_check import flown_axes
+    from cfknode.models.residual_check import SCORE_KEY, flown_axes
 
     # Drag in x and y; the candidate has both, and every later round brings it back (rejected: no better than itself).
     candidate = linear_residual_model(np.diag([-3.0, -3.0, 0.0]), np.zeros((3, 3)))
@@ -322,16 +322,19 @@ def test_beside_the_layer_an_axis_the_flying_model_stops_earning_on_stops_flying
         assert slot.version == 1 and flown_axes(slot.model.beyond_layer, 0.0) == (True, True, False)
         flight.drag = np.array([-3.0, 0.0, 0.0])  # y's drag is gone: the model's y term now makes y worse
         flight.run(3.0)
-        runs[rejudge] = (log.topic("/model"), slot)
-    events, slot = runs[False]
+        runs[rejudge] = (log.topic("/model"), slot, learner)
+    events, slot, _ = runs[False]
     assert not [m for m in events if m["event"] == "narrow"] and slot.version == 1  # off by default
-    events, slot = runs[True]
+    events, slot, learner = runs[True]
     narrow = [m for m in events if m["event"] == "narrow"]
     assert len(narrow) == 1 and "stopped earning on y" in narrow[0]["reason"], [m.get("reason") for m in events]
     # The same networks fly on under a new version, on x alone (what still earns); the other axes' scores are 0.
     assert slot.version == narrow[0]["version"] > 1
     assert flown_axes(slot.model.beyond_layer, 0.0) == (True, False, False)
     assert slot.model.beyond_layer[0] > 0.02
+    # What the flight keeps for the next one is the narrowed file, with the axes it still flies.
+    kept = learner.learned_model
+    assert kept is not None and np.allclose(kept.extra[SCORE_KEY], slot.model.beyond_layer)
 
 
 def test_the_flying_model_keeps_an_axis_while_its_score_since_the_swap_is_above_the_bar() -> None:

@@ -83,6 +83,7 @@ class FlyingRejudge:
         model = copy.copy(flying.model)
         model.beyond_layer = kept
         file = replace(flying.file, extra={**flying.file.extra, SCORE_KEY: [float(v) for v in kept]})
+        self.recent_models.append((self._next_version, file))  # still this flight's learning: a flight keeps it
         self._replace_flying(t, model, file, flying.queue, "narrow", reason)
 
 
