@@ -183,6 +183,16 @@ def test_brief_rows_carry_what_a_person_checks_within_80_columns() -> None:
     assert "fallback_reasons" not in text and "MSE x / y / z" not in text
 
 
+def test_brief_rows_name_the_learned_model_kept_beside_the_log() -> None:
+    kept = flight(extra={"models_accepted": 2, "models_trained": 4,
+                         "learned_model": "/flights/20261206-080340-circle.learned.safetensors"})
+    rows = brief_rows(kept)
+    assert "  learned model  kept as 20261206-080340-circle.learned.safetensors" in rows
+    assert all(len(row) <= 80 for row in rows)
+    lost = brief_rows(flight(extra={"learned_model_error": "the learned model was not written: disk full"}))
+    assert any("attention" in row and "the learned model was not kept" in row for row in lost)
+
+
 def test_brief_rows_leave_out_what_a_flight_did_not_have() -> None:
     rows = brief_rows(flight())
     assert [row.split()[0] for row in rows[1:]] == ["tracking", "tick", "missed", "speed", "log"]

@@ -13,6 +13,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -330,6 +331,8 @@ def brief_rows(summary: FlightSummary) -> list[str]:
             _row("speed", f"{_g(s.speed_factor, 3)}x real time" + (", lockstep" if x.get("lockstep") else ""))]
     if "models_accepted" in x:
         rows.append(_row("models", f"{x['models_accepted']} accepted of {x.get('models_trained', '?')} trained"))
+    if x.get("learned_model"):  # beside the log: its name is enough
+        rows.append(_row("learned model", f"kept as {Path(str(x['learned_model'])).name}"))
     if isinstance(x.get("adaptation_thrust_scale_end"), (int, float)):
         rows.append(_row("mass estimate", f"{x['adaptation_thrust_scale_end']:.3f} x nominal "
                                           f"(fast layer, {x.get('adaptation', '?')})"))
@@ -398,6 +401,8 @@ def _attention(extra: Mapping[str, Any]) -> str:
         notes.append("trainer failed")
     if extra.get("flight_log"):
         notes.append(f"log {extra['flight_log']}")
+    if extra.get("learned_model_error"):
+        notes.append("the learned model was not kept")
     return ", ".join(notes)
 
 
