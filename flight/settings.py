@@ -45,6 +45,8 @@ class AdaptationTuning:
         doc="how long the step bandwidth and rate last after an alarm")
     step_max_s: float = setting(unit="s", low=0, high=10, open_low=True,
         doc="a step is tracked at most this long after its first alarm; later alarms start a new step")
+    wake_radius: float = setting(unit="m", low=0, high=2,
+        doc="no heavier step is called while another drone is above within this distance (its wake); 0 = off")
     oracle_delay_s: float = setting(unit="s", low=0, high=1,
         doc="adaptation oracle (a bench reference) only: the true mass is told this late")
     output_bandwidth_hz: float = setting(unit="Hz", low=0, high=50,

@@ -536,6 +536,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": BOTH,
         "test_the_defaults_learn_beside_the_layer_from_slow_flight_and_judge_what_flies": FAST,
     },
+    "test_wake_guard.py": {
+        "*": FAST,
+        "test_crossing_under_a_hovering_drone_the_layer_takes_no_pass_for_a_heavier_vehicle": FLIES,
+    },
     "test_wake_only.py": {
         "*": FAST,
         "test_on_the_crossing_the_learned_wake_flies_below_the_layer_alone": BOTH,

@@ -146,7 +146,7 @@ def _layer() -> FastAdaptation:
         stale_pose_s=0.05, rebase_window_s=0.25, thrust_lag_s=None, thrust_lag_candidates_s=(), step_threshold=0.0,
         step_bandwidth_hz=10.0, step_thrust_rate=0.0, step_hold_s=0.3, oracle_delay_s=0.0, output_bandwidth_hz=0.5,
         output_bandwidth_xy_hz=0.5, offset_deadband=0.0, engage_level=0.0, engage_slow_level=0.03,
-        engage_slow_s=2.0, release_s=0.3, step_max_s=1.0, accel_cutoff_hz=5.0, accel_max_offset=2.0,
+        engage_slow_s=2.0, release_s=0.3, step_max_s=1.0, wake_radius=0.0, accel_cutoff_hz=5.0, accel_max_offset=2.0,
         accel_stale_s=0.03, model_coefficients=True, coefficient_bounds=(0.0, 1.5), coefficient_memory_s=4.0,
         coefficient_prior=0.05, model_mean_s=1.0, model_min_score=0.002)
     return FastAdaptation(s, 400.0, G)

@@ -5,27 +5,24 @@ Three estimates, relative to the model's predicted acceleration for the command 
 - ``thrust_scale`` s: mass / nominal mass as the thrust sees it; the Mellinger layer computes thrust with s m;
 - ``axis_gain`` k (x, y, 1): how much of a commanded tilt the attitude loop delivers; the Mellinger layer divides by it.
 A disturbance estimate sigma comes from an observer on velocity (no differentiation of v), whose input is the thrust
-actually sent along the *measured* body axis (the attitude loop's lag is then not a disturbance: fed the commanded
-acceleration instead, the 2 Hz observer and the MPC oscillated through that lag). Its vertical part is moved into s,
-shifting sigma so that model + layer predicts the same acceleration before and after; what remains is d. k compares
-the horizontal acceleration the measured attitude gives with the one commanded.
-
-"dob" (a first-order disturbance observer) is the method; "l1" (velocity predictor, adaptive law, output
-filter) stays for comparison: its filter chain adds lag for no gain on a mass step.
+actually sent along the *measured* body axis (fed the commanded acceleration instead, the 2 Hz observer and the MPC
+oscillated through the attitude loop's lag). Its vertical part is moved into s, shifting sigma so that model + layer
+predicts the same acceleration before and after; what remains is d. k compares the horizontal acceleration the
+measured attitude gives with the one commanded. "dob" (a first-order disturbance observer) is the method; "l1"
+(velocity predictor, adaptive law, output filter) stays for comparison: its filters add lag for no gain on a step.
 
 No single bandwidth serves both a noisy mocap and a payload step, so the observer is slow between steps and
 a step detector raises an alarm: a CUSUM of the frame-to-frame vertical velocity surprise, normalised by its
 noise level learned in flight. For ``step_hold_s`` after it the mass is fitted to the mocap heights around
 the onset (step_fit.py), which does not ring as moving an additive estimate into the mass did; a fit that
 sees no step keeps the mass. A step is tracked at most ``step_max_s``. Without heights the observer runs at
-``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm.
+``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm. Under another drone's
+wake no heavier step is called (wake_guard.py).
 
-What the MPC gets is not sigma itself: sigma = omega (v - z) passes the velocity estimate's noise straight
-through at gain omega, and in quiet flight that noise is the whole offset. The published offset is sigma
-behind a second low-pass pole (``output_bandwidth``; bypassed vertically while a step is tracked), and
-horizontally shrunk where it is not clearly above ``offset_deadband``: what is left at the circle's
-frequency follows the attitude measurement's age and the attitude loop, which the MPC cannot cancel as a
-constant. The thrust scale learns from the smoothed vertical estimate too.
+What the MPC gets is not sigma itself, which passes the velocity estimate's noise straight through at gain omega:
+it is sigma behind a second low-pass pole (``output_bandwidth``; bypassed vertically while a step is tracked), and
+horizontally shrunk where it is not clearly above ``offset_deadband`` (what is left at the circle's frequency
+follows the attitude measurement's age and the attitude loop, which the MPC cannot cancel as a constant).
 
 What the controller flies with is ``applied``: the estimate on the axes where it acts, the model alone on the
 others (``engagement``). An axis acts once the error the layer sees there (its offset; vertically the offset plus
@@ -55,6 +52,7 @@ from cfknode.flight.adaptation.observer import (
 from cfknode.flight.adaptation.settings import MODES, AdaptationSettings
 from cfknode.flight.adaptation.step_detect import FrameStepDetector, StepTracker
 from cfknode.flight.adaptation.step_fit import LAG_FRAMES, StepFit
+from cfknode.flight.adaptation.wake_guard import WakeGuard
 
 
 class LoopExtras(NamedTuple):
@@ -66,7 +64,8 @@ class LoopExtras(NamedTuple):
     lag: int = 0
     imu_theta: tuple[float, float] | None = None
     accel_part: np.ndarray | None = None
-    neighbour: np.ndarray | None = None
+    neighbour: np.ndarray | None = None  # the drone above where the flying model saw it (recent.py)
+    above: np.ndarray | None = None  # the drone above now, for the wake guard (the fleet's, or ``neighbour``)
 
 
 _NO_EXTRAS = LoopExtras()
@@ -100,6 +99,7 @@ class FastAdaptation:
         self._imu = ImuStepDetector()
         self._frames = FrameStepDetector()
         self.tracker = StepTracker(settings.step_hold_s, settings.step_max_s)
+        self.wake = WakeGuard(settings.wake_radius)  # ``extras.neighbour``: no heavier step under its wake
         self._engagement = Engagement(settings.engage_level, settings.engage_slow_level, settings.engage_slow_s,
                                       settings.release_s)
         self.reset()
@@ -123,6 +123,7 @@ class FastAdaptation:
         self._recent.reset()
         self._frames.reset()
         self.tracker.reset()
+        self.wake.reset()
         self._omega_z = float(self.omega[2])  # the vertical bandwidth the observer's state is scaled for
         self._jump = 0.0  # m/s^2 added to the vertical estimate at an alarm
         self._fit.reset()
@@ -186,9 +187,11 @@ class FastAdaptation:
             a_thrust = (u_z + self.g) * scale if thrust_by_lag is None else thrust_by_lag
             self._fit.tick(t, x_meas.item(2), a_thrust, (a_z - u_z) - self.g, 1.0 / scale, self._out.item(2),
                            pose_fresh, lag)
-        if self._fitting and imu_theta is not None:
+        under_wake = self.wake.update(t, None if x_meas is None else x_meas[0:3], extras.above)
+        heavier = imu_theta is not None and imu_theta[1] > 1.0 / self.estimate.thrust_scale
+        if self._fitting and imu_theta is not None and not (under_wake and heavier):
             self._imu_sample(t, *imu_theta)
-        stepping = self._detect_step(t, v_meas.item(2), model_acc.item(2), dt, thrust_sat, pose_fresh)
+        stepping = self._detect_step(t, v_meas.item(2), model_acc.item(2), dt, thrust_sat, pose_fresh, under_wake)
         fit = self._refit(stepping, pose_fresh)
         if fit is not None:
             self._jump = 0.0  # the fit tells whether there was a step; the run's mean acceleration is not added
@@ -260,8 +263,9 @@ class FastAdaptation:
         after 0.59 s)."""
         return self._t_prev is not None and t - self._t_prev > self.s.stale_pose_s
 
-    def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool) -> bool:
-        """True while a vertical step (a mass change, a payload) is being tracked fast (step_detect.py)."""
+    def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool,
+                     under_wake: bool = False) -> bool:
+        """True while a vertical step (a mass, a payload) is tracked fast (step_detect.py); none heavier under a wake."""
         if self.s.step_threshold <= 0.0 or self.s.mode != "dob":
             return False
         tracker, frames = self.tracker, self._frames
@@ -269,6 +273,9 @@ class FastAdaptation:
         if not frames.observe(t, v_z, a_z + float(self._sigma[2]), dt, fresh):
             return stepping
         side = frames.side()
+        if under_wake and side == 1:  # downward: the wake's surprise, not a heavier vehicle
+            frames.clear()
+            return stepping
         if frames.cusum[side] > tracker.threshold(t, self.s.step_threshold) and not thrust_sat:
             if not stepping:
                 dv, span = frames.run(side)
@@ -381,9 +388,8 @@ class FastAdaptation:
         self._engage(dt, bounded)
 
     def _engage(self, dt: float, bounded: tuple[float, float, float] | None = None) -> None:
-        """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the
-        offset plus what the mass estimate moved out of it (its error at hover). ``bounded``: ``_bounded_out()``
-        when the caller has it."""
+        """Which axes act, from the evidence: the horizontal offsets before their shrink, and vertically the offset
+        plus what the mass estimate moved out of it (its error at hover). ``bounded``: ``_bounded_out()`` if known."""
         x, y, z = self._bounded_out() if bounded is None else bounded
         acts = self._engagement.update((x, y, z + (self.estimate.thrust_scale - 1.0) * self.g), dt)
         self.applied = applied_estimate(self.estimate, acts)
@@ -404,8 +410,7 @@ class FastAdaptation:
 
     def _published(self, bounded: tuple[float, float, float] | None = None) -> np.ndarray:
         """The offset the MPC gets: bounded, the horizontal part shrunk (the vertical one is kept small by the
-        thrust-scale transfer, and a shrink there would lag a ramp such as a battery's sag). ``bounded``:
-        ``_bounded_out()`` when the caller has it."""
+        thrust-scale transfer; a shrink there would lag a ramp such as a battery's sag). ``bounded``: as _engage."""
         x, y, z = self._bounded_out() if bounded is None else bounded
         band = self.s.offset_deadband
         return np.array([shrink(x, band), shrink(y, band), z])
@@ -438,8 +443,7 @@ class FastAdaptation:
             self._sigma_hat = self._sigma.copy()
 
     def recent(self) -> Recent:
-        """The buffered recent ticks (recent.py): states, applied commands, the flying model's accelerations, and
-        the neighbour positions it saw."""
+        """The buffered recent ticks (recent.py): states, commands, the flying model's accelerations, neighbours."""
         return self._recent.view()
 
     def rebase(self, new_model_acc: np.ndarray) -> AdaptationEstimate:
@@ -464,8 +468,7 @@ class FastAdaptation:
 
 def finite_sum(*vectors: np.ndarray) -> bool:
     """Whether the 3-vectors' summed elements are finite (a NaN or inf anywhere makes the sum so): the number
-    ``float(v1.sum() + v2.sum() + ...)`` is, added in its order with floats (numpy's reduction costs ~1 us a
-    vector)."""
+    ``float(v1.sum() + v2.sum() + ...)`` is, added in its order with floats (numpy's reduction: ~1 us a vector)."""
     total = 0.0
     for i, v in enumerate(vectors):
         a0, a1, a2 = v.tolist()

@@ -70,7 +70,14 @@ class LoopAdaptation:
         self._coeff_settings = CoefficientSettings(tuning.coefficient_bounds, tuning.coefficient_memory_s,
                                                    tuning.coefficient_prior, tuning.model_mean_s)
         self.coefficients: ModelCoefficients | None = None
+        # A fleet drone's view of the others (flight/neighbours.py ``NeighbourFeed``): the layer calls no heavier step
+        # under the drone above (wake_guard.py). None: alone, or a model slot's neighbour stands in.
+        self.neighbour: Any = None
         self._coefficients_flown: tuple[np.ndarray, np.ndarray] | None = None  # (a, m) at the last off-air reset
+
+    def _above(self, p: np.ndarray) -> np.ndarray | None:
+        """The drone above's position from the fleet's board (with none above: straight up, out of reach)."""
+        return None if self.neighbour is None else p + self.neighbour.relative(p)
 
     @property
     def estimate(self) -> AdaptationEstimate:
@@ -125,8 +132,9 @@ class LoopAdaptation:
         by_lag = self.lags.acting_scaled(bz[2], self.vehicle.mass)
         imu = self._imu_theta(now, est) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
+        seen = getattr(model, "last_neighbour", None)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
-                            accel_part=fast, neighbour=getattr(model, "last_neighbour", None))
+                            accel_part=fast, neighbour=seen, above=seen if seen is not None else self._above(est.p))
         self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)
         if coeffs is not None and self.layer.s.enabled and not self.layer.estimate.frozen:
             e = self.layer.estimate

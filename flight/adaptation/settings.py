@@ -45,6 +45,7 @@ class AdaptationSettings:
     engage_slow_s: float
     release_s: float
     step_max_s: float
+    wake_radius: float
     accel_cutoff_hz: float
     accel_max_offset: float
     accel_stale_s: float

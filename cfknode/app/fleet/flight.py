@@ -260,7 +260,7 @@ class _Flying:
     learners: Sequence[Any]
     ground: Sequence[float]
     coordinator: FleetCoordinator
-    board: NeighbourBoard | None = None  # the drones' positions for the neighbour input (None: off)
+    board: NeighbourBoard | None = None  # the drones' positions: neighbour input, the layers' wake guard (None: off)
 
 
 def fly_drones(cfg: Config, drones: Sequence[Backend], plan: FleetPlan,
@@ -338,6 +338,8 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
                                 deadline_s=deadline, ground_z=ground[i])
         if learners[i] is not None:
             controller.observers.append(learners[i])
+        if flying.board is not None and hasattr(controller.adaptation, "neighbour"):
+            controller.adaptation.neighbour = flying.board.feed(i)
         flog.follow_plan(names[i], lambda c=controller: c.predicted_positions)
         taps = [flying.board.tap(i)] if flying.board is not None else []
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
@@ -388,16 +390,23 @@ async def _gather(drones: Sequence[Backend], parts: Sequence[FlightParts],
 
 
 def neighbour_board(cfg: Config, refs: Sequence[HoldableReference], slots: Sequence[Any]) -> NeighbourBoard | None:
-    """With ``fleet.neighbour_input``, the board every drone's model slot reads its neighbour input from
-    (docs/fleet.md#neighbour-input); None when it is off or no drone flies a model."""
-    if not cfg.fleet.neighbour_input or all(s is None for s in slots):
-        return None
+    """The drones' positions, shared: with ``fleet.neighbour_input`` every drone's model slot reads its neighbour
+    input from it (docs/fleet.md#neighbour-input), and every drone's fast layer sees the drone above, under whose
+    wake it calls no heavier step (``controller.adaptation_settings.wake_radius``). None when neither applies."""
+    inputs = cfg.fleet.neighbour_input and any(s is not None for s in slots)
     c = cfg.controller
+    if not (inputs or (len(refs) >= 2 and layer_sees_wakes(cfg))):
+        return None
     board = NeighbourBoard(refs, 1.0 / c.rate_hz, c.dt, c.horizon, lead=cfg.estimator.command_delay)
     for i, slot in enumerate(slots):
-        if slot is not None:
+        if slot is not None and inputs:
             slot.neighbour = board.feed(i)
     return board
+
+
+def layer_sees_wakes(cfg: Config) -> bool:
+    """Whether the drones' fast layers watch for the drone above's wake (wake_guard.py)."""
+    return cfg.controller.adaptation == "dob" and cfg.controller.adaptation_settings.wake_radius > 0.0
 
 
 def true_min_separation(records: Sequence[FlightRecord]) -> float:
