@@ -7,11 +7,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import pytest
 
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, settings_from_controller
 from cfknode.flight.adaptation.layer import LoopExtras
-from cfknode.flight.adaptation.wake_guard import HOLD_S, REACH_M, WakeGuard
+from cfknode.flight.adaptation.wake_guard import HOLD_S, PASS_SPEED, REACH_M, WakeGuard
 
 G = 9.81
 RATE = 400.0
@@ -20,22 +21,36 @@ OVERHEAD = np.array([0.0, 0.0, 1.3])  # 0.3 m above the hovering drone
 ASIDE = np.array([1.0, 0.0, 1.3])  # the same height, 1 m to the side
 
 
-def test_the_guard_holds_under_the_drone_above_and_for_its_hold_after() -> None:
+def _pass(g: WakeGuard, speed: float, dz: float = 0.3, t0: float = 0.0, seconds: float = 0.6) -> list[bool]:
+    """``g`` over a pass at ``speed`` under a drone ``dz`` above, from 0.3 m before it, a tick every 2.5 ms."""
+    out = []
+    for i in range(int(seconds * RATE)):
+        t = t0 + i / RATE
+        out.append(g.update(t, HOVER, HOVER + [speed * t - 0.3, 0.0, dz]))
+    return out
+
+
+def test_the_guard_holds_while_passing_under_the_drone_above_and_for_its_hold_after() -> None:
     g = WakeGuard(0.15)
-    assert not g.update(0.0, HOVER, ASIDE)
-    assert g.update(1.0, HOVER, OVERHEAD)
-    assert g.update(1.0 + 0.9 * HOLD_S, HOVER, ASIDE)  # the detectors' run still holds the wake's surprise
-    assert not g.update(1.0 + 1.1 * HOLD_S, HOVER, ASIDE)
-    assert g.update(2.0, HOVER, HOVER + [0.1, 0.0, 0.5])  # within the radius, 0.5 m above
+    held = np.array(_pass(g, 1.0))
+    t = np.arange(held.size) / RATE
+    # Under it from 0.15 s to 0.45 s (r < 0.15 m at 1 m/s), held 0.3 s after; not before (the speed is measured
+    # over 50 ms).
+    assert not held[t < 0.15].any() and held[(t > 0.2) & (t < 0.45 + 0.9 * HOLD_S)].all()
+    assert g.speed == pytest.approx(1.0, rel=0.05)
+    assert not g.update(0.45 + 1.1 * HOLD_S, HOVER, ASIDE)
+    assert any(_pass(WakeGuard(0.15), 1.0, dz=0.5))  # 0.5 m above
 
 
-def test_the_guard_needs_a_drone_above_within_its_radius_and_reach() -> None:
+def test_the_guard_needs_a_pass_under_a_drone_above_within_its_radius_and_reach() -> None:
     for p, above in ((HOVER, None), (None, OVERHEAD), (HOVER, HOVER + [0.2, 0.0, 0.3]),
                      (HOVER, HOVER + [0.0, 0.0, -0.3]), (HOVER, HOVER + [0.0, 0.0, REACH_M])):
         assert not WakeGuard(0.15).update(1.0, p, above), (p, above)
-    assert not WakeGuard(0.0).update(1.0, HOVER, OVERHEAD)  # 0: off
+    assert not any(_pass(WakeGuard(0.0), 1.0))  # 0: off
+    assert not any(_pass(WakeGuard(0.15), 0.5 * PASS_SPEED))  # stopping under it: its wake lasts
+    assert not any(_pass(WakeGuard(0.15), 1.0, dz=-0.3))  # the other one is below
     g = WakeGuard(0.15)
-    g.update(1.0, HOVER, OVERHEAD)
+    assert any(_pass(g, 1.0))
     g.reset()
     assert not g.update(1.0, HOVER, ASIDE)
 
@@ -81,7 +96,8 @@ def _pulse(t: float) -> float:
 
 
 def _passing(t: float) -> np.ndarray:
-    return OVERHEAD if 2.9 < t < 3.16 else ASIDE
+    """The drone above crossing over at 1 m/s, overhead at 3.03 s (its wake's 60 ms: 3.0-3.06 s)."""
+    return OVERHEAD + [t - 3.03, 0.0, 0.0]
 
 
 def test_a_pass_under_a_wake_is_no_heavier_vehicle() -> None:
@@ -94,16 +110,22 @@ def test_a_pass_under_a_wake_is_no_heavier_vehicle() -> None:
     assert alarms and scale.max() > 2.0
 
 
-def test_under_a_wake_a_lighter_step_is_still_called_and_a_heavier_one_learned_slowly() -> None:
-    def overhead(t: float) -> np.ndarray:
-        return OVERHEAD
+def test_passing_under_a_wake_a_lighter_step_is_still_called_and_stopped_under_it_a_heavier_one_too() -> None:
+    def lighter(t: float) -> float:
+        return 0.3 * G if t >= 3.0 else 0.0
 
-    lighter = _hover(_layer(), lambda t: 0.3 * G if t >= 3.0 else 0.0, overhead)
-    alone = _hover(_layer(), lambda t: 0.3 * G if t >= 3.0 else 0.0, lambda t: None)
-    assert lighter[0] == alone[0] and np.array_equal(lighter[1], alone[1])  # leaving a wake it hovered in
-    alarms, scale = _hover(_layer(), lambda t: -0.3 * G if t >= 3.0 else 0.0, overhead)
-    assert not alarms
-    assert scale[-1] > 1.2, scale[-1]  # a payload under a wake: the slow observer's, 2 s after (1.3 true)
+    def heavier(t: float) -> float:
+        return -0.3 * G if t >= 3.0 else 0.0
+
+    passing = _hover(_layer(), lighter, _passing)
+    alone = _hover(_layer(), lighter, lambda t: None)
+    assert passing[0] == alone[0] and np.array_equal(passing[1], alone[1])  # leaving a wake
+    stopped = _hover(_layer(), heavier, lambda t: OVERHEAD)  # hovering in a wake, or stacked: a lasting force
+    alone = _hover(_layer(), heavier, lambda t: None)
+    assert stopped[0] and stopped[0] == alone[0] and np.array_equal(stopped[1], alone[1])
+    alarms, scale = _hover(_layer(), heavier, _passing)  # met while passing: the slow observer's
+    assert all(t > 3.1 for t in alarms), alarms
+    assert scale[-1] > 1.2, scale[-1]
 
 
 def _largest_thrust_scale(log_dir: Path, drone: str = "cf1") -> float:

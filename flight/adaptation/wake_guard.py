@@ -4,10 +4,12 @@ A drone passing under another meets its downwash: a downward force a few centime
 at 0.5-1.5 m/s. To the step detectors (step_detect.py, imu_step.py) its onset is a vehicle that became heavier,
 and the step's fit (step_fit.py), a lasting change fitted to the few frames after it, put the thrust scale at
 its bound (2.5) for a moment while the commands scaled with it: 0.2 m along the line at 1.5 m/s
-(docs/history.md#another-drones-wake-is-not-a-mass-step). A wake only ever pushes down, so while another drone
-is above within ``radius`` horizontally, and for ``HOLD_S`` after, no step that makes the vehicle heavier is
-called. A lighter one (leaving a wake the drone hovered in) still is, and the slow observer takes what the wake
-leaves on average.
+(docs/history.md#another-drones-wake-is-not-a-mass-step). A wake only ever pushes down, so while the drone
+passes under another within ``radius`` horizontally (their horizontal distance changing faster than
+``PASS_SPEED``), and for ``HOLD_S`` after it has left, no step that makes the vehicle heavier is called. A
+lighter one (leaving a wake) still is, and so is a heavier one while the drone is under another and not
+passing: one that flies into a wake and stops there, or flies stacked under another, carries that force for
+seconds, as it would a payload.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import numpy as np
 from cfknode.flight.neighbours import NONE_ABOVE
 
 HOLD_S = 0.3  # s after leaving the wake's reach: the detectors' run still holds the wake's surprise
+PASS_SPEED = 0.2  # m/s of horizontal relative speed: slower, a wake is met for longer than a step's hold
+SPEED_SPAN_S = 0.05  # s the relative speed is measured over (1 mm of mocap noise: 0.02 m/s)
 REACH_M = float(NONE_ABOVE[2])  # m: no wake beyond this gap (the neighbour input's "none above")
 
 
@@ -30,16 +34,32 @@ class WakeGuard:
         self.reset()
 
     def reset(self) -> None:
-        self._under_t = -math.inf  # s, the last tick under another drone's wake
+        self._under_t = -math.inf  # s, the last tick passing under another drone's wake
+        self._mark: tuple[float, float, float] | None = None  # (t, dx, dy) the relative speed is measured from
+        self.speed = 0.0  # m/s, the horizontal relative speed last measured
 
     def update(self, t: float, p: np.ndarray | None, above: np.ndarray | None) -> bool:
-        """True while ``p`` is under ``above`` (world positions) or was within ``HOLD_S``; False with either unknown."""
+        """True while ``p`` passes under ``above`` (world positions) or did within ``HOLD_S``; False with either
+        unknown."""
         if self.radius > 0.0 and p is not None and above is not None:
+            dx, dy = float(above[0]) - float(p[0]), float(above[1]) - float(p[1])
+            self._measure(t, dx, dy)
             dz = float(above[2]) - float(p[2])
-            r = math.hypot(float(above[0]) - float(p[0]), float(above[1]) - float(p[1]))
-            if 0.0 < dz < REACH_M and r < self.radius:
+            if 0.0 < dz < REACH_M and math.hypot(dx, dy) < self.radius:
+                if self.speed <= PASS_SPEED:  # stopped under it: the wake lasts, as a payload does
+                    self._under_t = -math.inf
+                    return False
                 self._under_t = t
         return t - self._under_t < HOLD_S
 
+    def _measure(self, t: float, dx: float, dy: float) -> None:
+        """The horizontal relative speed over the last ``SPEED_SPAN_S``."""
+        if self._mark is None or t < self._mark[0]:
+            self._mark = (t, dx, dy)
+        elif t - self._mark[0] >= SPEED_SPAN_S:
+            t0, x0, y0 = self._mark
+            self.speed = math.hypot(dx - x0, dy - y0) / (t - t0)
+            self._mark = (t, dx, dy)
 
-__all__ = ["HOLD_S", "REACH_M", "WakeGuard"]
+
+__all__ = ["HOLD_S", "PASS_SPEED", "REACH_M", "WakeGuard"]
