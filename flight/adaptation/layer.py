@@ -16,13 +16,14 @@ a step detector raises an alarm: a CUSUM of the frame-to-frame vertical velocity
 noise level learned in flight. For ``step_hold_s`` after it the mass is fitted to the mocap heights around
 the onset (step_fit.py), which does not ring as moving an additive estimate into the mass did; a fit that
 sees no step keeps the mass. A step is tracked at most ``step_max_s``. Without heights the observer runs at
-``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm. Under another drone's
-wake no heavier step is called (wake_guard.py).
+``step_bandwidth_hz`` instead, with the run's unexplained acceleration added at the alarm. Passing under another
+drone's wake no heavier step is called (wake_guard.py).
 
 What the MPC gets is not sigma itself, which passes the velocity estimate's noise straight through at gain omega:
 it is sigma behind a second low-pass pole (``output_bandwidth``; bypassed vertically while a step is tracked), and
 horizontally shrunk where it is not clearly above ``offset_deadband`` (what is left at the circle's frequency
-follows the attitude measurement's age and the attitude loop, which the MPC cannot cancel as a constant).
+follows the attitude measurement's age and the attitude loop, which the MPC cannot cancel as a constant). The
+thrust scale learns from the smoothed vertical estimate too.
 
 What the controller flies with is ``applied``: the estimate on the axes where it acts, the model alone on the
 others (``engagement``). An axis acts once the error the layer sees there (its offset; vertically the offset plus
@@ -99,7 +100,7 @@ class FastAdaptation:
         self._imu = ImuStepDetector()
         self._frames = FrameStepDetector()
         self.tracker = StepTracker(settings.step_hold_s, settings.step_max_s)
-        self.wake = WakeGuard(settings.wake_radius)  # ``extras.neighbour``: no heavier step under its wake
+        self.wake = WakeGuard(settings.wake_radius)  # ``extras.above``: no heavier step passing under its wake
         self._engagement = Engagement(settings.engage_level, settings.engage_slow_level, settings.engage_slow_s,
                                       settings.release_s)
         self.reset()
@@ -258,14 +259,13 @@ class FastAdaptation:
         self._sigma = moved
 
     def stalled(self, t: float) -> bool:
-        """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The
-        vehicle moved meanwhile, and integrating across the gap read that motion as a disturbance (+-6 m/s^2
-        after 0.59 s)."""
+        """Whether the layer's last tick is longer ago than a stale pose (a stalled host): a blind spell too. The drone
+        moved meanwhile, and integrating across the gap read that motion as a disturbance (+-6 m/s^2 after 0.59 s)."""
         return self._t_prev is not None and t - self._t_prev > self.s.stale_pose_s
 
     def _detect_step(self, t: float, v_z: float, a_z: float, dt: float, thrust_sat: bool, fresh: bool,
                      under_wake: bool = False) -> bool:
-        """True while a vertical step (a mass, a payload) is tracked fast (step_detect.py); none heavier under a wake."""
+        """True while a vertical step (a mass, a payload) is tracked fast (step_detect.py); none heavier in a pass."""
         if self.s.step_threshold <= 0.0 or self.s.mode != "dob":
             return False
         tracker, frames = self.tracker, self._frames
