@@ -85,6 +85,11 @@ class NeighbourFeed:
         j = self._board.above(self.index, p)
         return NONE_ABOVE.copy() if j is None else self._board.position(j) - p
 
+    def above(self, p: np.ndarray) -> np.ndarray | None:
+        """The nearest drone above ``p``: its world position, None with none."""
+        j = self._board.above(self.index, p)
+        return None if j is None else self._board.position(j)
+
     def horizon(self, x_nodes: np.ndarray, measured: bool = False) -> np.ndarray | None:
         """The neighbour's world position at each node (N, 3), from this tick (plus the plan's lead) on; None with no
         drone above. ``measured``: the nodes start at the measured state (no lead)."""

@@ -114,6 +114,8 @@ def test_the_board_gives_the_nearest_drone_above_and_moves_it_along_its_referenc
     assert np.allclose(feed0.relative(np.array([0.0, 0.0, 0.5])), [0.1, 0.0, 0.5])
     assert np.allclose(feed1.relative(np.array([0.1, 0.0, 1.0])), [-0.1, 0.0, 1.0])
     assert np.array_equal(board.feed(2).relative(np.array([0.0, 0.0, 2.0])), NONE_ABOVE)
+    assert np.allclose(feed0.above(np.array([0.0, 0.0, 0.5])), [0.1, 0.0, 1.0])  # where it is (the layer's view)
+    assert board.feed(2).above(np.array([0.0, 0.0, 2.0])) is None
     nodes = np.tile([0.0, 0.0, 0.5, 0.0, 0.0, 0.0], (4, 1))
     nb = feed0.horizon(nodes)
     # From this tick (1.0 + one period) on, 0.5 m/s along x: the reference's displacement, from where it was seen.

@@ -189,8 +189,8 @@ class FastAdaptation:
             self._fit.tick(t, x_meas.item(2), a_thrust, (a_z - u_z) - self.g, 1.0 / scale, self._out.item(2),
                            pose_fresh, lag)
         under_wake = self.wake.update(t, None if x_meas is None else x_meas[0:3], extras.above)
-        heavier = imu_theta is not None and imu_theta[1] > 1.0 / self.estimate.thrust_scale
-        if self._fitting and imu_theta is not None and not (under_wake and heavier):
+        if self._fitting and imu_theta is not None and not (
+                under_wake and imu_theta[1] > 1.0 / self.estimate.thrust_scale):  # heavier, in a pass: the wake
             self._imu_sample(t, *imu_theta)
         stepping = self._detect_step(t, v_meas.item(2), model_acc.item(2), dt, thrust_sat, pose_fresh, under_wake)
         fit = self._refit(stepping, pose_fresh)

@@ -75,10 +75,6 @@ class LoopAdaptation:
         self.neighbour: Any = None
         self._coefficients_flown: tuple[np.ndarray, np.ndarray] | None = None  # (a, m) at the last off-air reset
 
-    def _above(self, p: np.ndarray) -> np.ndarray | None:
-        """The drone above's position from the fleet's board (with none above: straight up, out of reach)."""
-        return None if self.neighbour is None else p + self.neighbour.relative(p)
-
     @property
     def estimate(self) -> AdaptationEstimate:
         """What the controller flies with: the estimate on the axes where it acts (``FastAdaptation.applied``)."""
@@ -133,8 +129,12 @@ class LoopAdaptation:
         imu = self._imu_theta(now, est) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
         seen = getattr(model, "last_neighbour", None)
+        if seen is None and self.neighbour is not None:
+            above = self.neighbour.above(est.p)
+        else:
+            above = seen
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
-                            accel_part=fast, neighbour=seen, above=seen if seen is not None else self._above(est.p))
+                            accel_part=fast, neighbour=seen, above=above)
         self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)
         if coeffs is not None and self.layer.s.enabled and not self.layer.estimate.frozen:
             e = self.layer.estimate
