@@ -48,6 +48,10 @@ def test_the_guard_needs_a_pass_under_a_drone_above_within_its_radius_and_reach(
         assert not WakeGuard(0.15).update(1.0, p, above), (p, above)
     assert not any(_pass(WakeGuard(0.0), 1.0))  # 0: off
     assert not any(_pass(WakeGuard(0.15), 0.5 * PASS_SPEED))  # stopping under it: its wake lasts
+    # A take-off's move into place under the drone above (0.35-0.40 m/s, then it stays) is an arrival; the slowest
+    # pass the learning bench flies (0.5 m/s) is a pass.
+    assert PASS_SPEED > 0.40 and not any(_pass(WakeGuard(0.15), 0.40))
+    assert any(_pass(WakeGuard(0.15), 0.5, seconds=1.2))
     assert not any(_pass(WakeGuard(0.15), 1.0, dz=-0.3))  # the other one is below
     g = WakeGuard(0.15)
     assert any(_pass(g, 1.0))
