@@ -21,7 +21,7 @@ import numpy as np
 from cfknode.flight.neighbours import NONE_ABOVE
 
 HOLD_S = 0.3  # s after leaving the wake's reach: the detectors' run still holds the wake's surprise
-# m/s of horizontal relative speed. Slower is an arrival: a fleet's take-off moves a drone into place over another at
+# m/s of horizontal relative speed. Slower is an arrival: a fleet's take-off moves a drone into place under another at
 # 0.35-0.40 m/s and stays (a step refused there came 0.13 s late); the slowest pass flown crosses at 0.5 m/s.
 PASS_SPEED = 0.45
 SPEED_SPAN_S = 0.05  # s the relative speed is measured over (1 mm of mocap noise: 0.02 m/s)
