@@ -12,7 +12,7 @@ import pytest
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, settings_from_controller
 from cfknode.flight.adaptation.layer import LoopExtras
-from cfknode.flight.adaptation.wake_guard import HOLD_S, PASS_SPEED, REACH_M, WakeGuard
+from cfknode.flight.adaptation.wake_guard import HOLD_S, PASS_SPEED, REACH_M, STOP_SPEED, WakeGuard
 
 G = 9.81
 RATE = 400.0
@@ -57,6 +57,22 @@ def test_the_guard_needs_a_pass_under_a_drone_above_within_its_radius_and_reach(
     assert any(_pass(g, 1.0))
     g.reset()
     assert not g.update(1.0, HOVER, ASIDE)
+
+
+def test_a_slow_pass_whose_measured_speed_dips_below_the_pass_speed_is_held_until_it_slows_to_a_stop() -> None:
+    # Measured under the jet, a 0.5 m/s crossing's relative speed is 0.42-0.47 m/s: one dip ended the hold.
+    g, x, held = WakeGuard(0.15), -0.2, []
+    for i in range(int(0.8 * RATE)):
+        x += (0.47 if (i // 20) % 2 == 0 else 0.42) / RATE  # 50 ms at each speed
+        held.append(g.update(i / RATE, HOVER, HOVER + [-x, 0.0, 0.3]))
+    t = np.arange(len(held)) / RATE
+    first = t[np.argmax(held)]
+    assert 0.1 < first < 0.2 and all(np.array(held)[t >= first])  # from its first 0.47 on, through the dips
+    g, x, held = WakeGuard(0.15), -0.2, []
+    for i in range(int(0.6 * RATE)):  # a pass that slows under it to below STOP_SPEED and stays: a lasting wake
+        x += (2.0 * PASS_SPEED if i < 0.3 * RATE else 0.5 * STOP_SPEED) / RATE
+        held.append(g.update(i / RATE, HOVER, HOVER + [-x, 0.0, 0.3]))
+    assert any(held[: int(0.3 * RATE)]) and not any(held[int(0.45 * RATE):]), x
 
 
 def _layer(**kw: Any) -> FastAdaptation:

@@ -6,7 +6,7 @@ and the step's fit (step_fit.py), a lasting change fitted to the few frames afte
 its bound (2.5) for a moment while the commands scaled with it: 0.2 m along the line at 1.5 m/s
 (docs/history.md#another-drones-wake-is-not-a-mass-step). A wake only ever pushes down, so while the drone
 passes under another within ``radius`` horizontally (their horizontal distance changing faster than
-``PASS_SPEED``), and for ``HOLD_S`` after it has left, no step that makes the vehicle heavier is called. A
+``PASS_SPEED``, and not since below ``STOP_SPEED``), and for ``HOLD_S`` after it has left, no step that makes the vehicle heavier is called. A
 lighter one (leaving a wake) still is, and so is a heavier one while the drone is under another and not
 passing: one that flies into a wake and stops there, or flies stacked under another, carries that force for
 seconds, as it would a payload.
@@ -21,9 +21,10 @@ import numpy as np
 from cfknode.flight.neighbours import NONE_ABOVE
 
 HOLD_S = 0.3  # s after leaving the wake's reach: the detectors' run still holds the wake's surprise
-# m/s of horizontal relative speed. Slower is an arrival: a fleet's take-off moves a drone into place under another at
-# 0.35-0.40 m/s and stays (a step refused there came 0.13 s late); the slowest pass flown crosses at 0.5 m/s.
+# m/s of horizontal relative speed a pass starts above: a fleet's take-off moves a drone into place under another at
+# 0.35-0.40 m/s and stays (a step refused there came 0.13 s late); a 0.5 m/s crossing measures 0.42-0.47 under the jet.
 PASS_SPEED = 0.45
+STOP_SPEED = 0.2  # m/s a pass ends below while under the wake (stopped there: its wake lasts, as a payload does)
 SPEED_SPAN_S = 0.05  # s the relative speed is measured over (1 mm of mocap noise: 0.02 m/s)
 REACH_M = float(NONE_ABOVE[2])  # m: no wake beyond this gap (the neighbour input's "none above")
 
@@ -39,6 +40,7 @@ class WakeGuard:
         self._under_t = -math.inf  # s, the last tick passing under another drone's wake
         self._mark: tuple[float, float, float] | None = None  # (t, dx, dy) the relative speed is measured from
         self.speed = 0.0  # m/s, the horizontal relative speed last measured
+        self._passing = False  # under the wake since the speed was above PASS_SPEED, and not below STOP_SPEED since
 
     def update(self, t: float, p: np.ndarray | None, above: np.ndarray | None) -> bool:
         """True while ``p`` passes under ``above`` (world positions) or did within ``HOLD_S``; False with either
@@ -47,11 +49,13 @@ class WakeGuard:
             dx, dy = float(above[0]) - float(p[0]), float(above[1]) - float(p[1])
             self._measure(t, dx, dy)
             dz = float(above[2]) - float(p[2])
-            if 0.0 < dz < REACH_M and math.hypot(dx, dy) < self.radius:
-                if self.speed <= PASS_SPEED:  # stopped under it: the wake lasts, as a payload does
-                    self._under_t = -math.inf
-                    return False
+            under = 0.0 < dz < REACH_M and math.hypot(dx, dy) < self.radius
+            # Two thresholds: a slow pass's measured speed dips around PASS_SPEED, and one dip ended the hold.
+            self._passing = under and self.speed > (STOP_SPEED if self._passing else PASS_SPEED)
+            if self._passing:
                 self._under_t = t
+            elif under:  # arrived (or stopped) under it: the wake lasts, as a payload does
+                self._under_t = -math.inf
         return t - self._under_t < HOLD_S
 
     def _measure(self, t: float, dx: float, dy: float) -> None:
@@ -64,4 +68,4 @@ class WakeGuard:
             self._mark = (t, dx, dy)
 
 
-__all__ = ["HOLD_S", "PASS_SPEED", "REACH_M", "WakeGuard"]
+__all__ = ["HOLD_S", "PASS_SPEED", "REACH_M", "STOP_SPEED", "WakeGuard"]
