@@ -129,10 +129,7 @@ class LoopAdaptation:
         imu = self._imu_theta(now, est) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
         seen = getattr(model, "last_neighbour", None)
-        if seen is None and self.neighbour is not None:
-            above = self.neighbour.above(est.p)
-        else:
-            above = seen
+        above = seen if seen is not None or self.neighbour is None else self.neighbour.above(est.p)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
                             accel_part=fast, neighbour=seen, above=above)
         self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)

@@ -6,10 +6,10 @@ and the step's fit (step_fit.py), a lasting change fitted to the few frames afte
 its bound (2.5) for a moment while the commands scaled with it: 0.2 m along the line at 1.5 m/s
 (docs/history.md#another-drones-wake-is-not-a-mass-step). A wake only ever pushes down, so while the drone
 passes under another within ``radius`` horizontally (their horizontal distance changing faster than
-``PASS_SPEED``, and not since below ``STOP_SPEED``), and for ``HOLD_S`` after it has left, no step that makes the vehicle heavier is called. A
-lighter one (leaving a wake) still is, and so is a heavier one while the drone is under another and not
-passing: one that flies into a wake and stops there, or flies stacked under another, carries that force for
-seconds, as it would a payload.
+``PASS_SPEED``, and not since below ``STOP_SPEED``), and for ``HOLD_S`` after it has left, no step that makes
+the vehicle heavier is called. A lighter one (leaving a wake) still is, and so is a heavier one while the drone
+is under another and not passing: one that flies into a wake and stops there, or flies stacked under another,
+carries that force for seconds, as it would a payload.
 """
 
 from __future__ import annotations

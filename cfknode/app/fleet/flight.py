@@ -338,7 +338,7 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
                                 deadline_s=deadline, ground_z=ground[i])
         if learners[i] is not None:
             controller.observers.append(learners[i])
-        if flying.board is not None and layer_sees_wakes(d.config) and hasattr(controller.adaptation, "neighbour"):
+        if flying.board is not None and layer_sees_wakes(d.config) and controller.adaptation is not None:
             controller.adaptation.neighbour = flying.board.feed(i)
         flog.follow_plan(names[i], lambda c=controller: c.predicted_positions)
         taps = [flying.board.tap(i)] if flying.board is not None else []
