@@ -84,6 +84,14 @@ class CommandDelayPredictor:
         self.residual = np.zeros(3)
         self._residual_t: float | None = None
 
+    def retune(self, delay: float, lag: float, residual_tau: float) -> None:
+        """Predict over ``delay`` through ``lag`` from now on (the vertical at once): an identified attitude loop's
+        lag (flight/learning/attitude_lag.py). What was kept under the old settings is dropped."""
+        if min(delay, lag, residual_tau) < 0.0:
+            raise ValueError(f"command delay, lag and residual_tau must be >= 0 s, got {delay}, {lag}, {residual_tau}")
+        self.delay, self.delay_z, self.lag, self.residual_tau = delay, 0.0, lag, residual_tau
+        self.reset()
+
     @property
     def active(self) -> bool:
         return self.delay > 0.0 or self.delay_z > 0.0

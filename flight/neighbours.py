@@ -79,6 +79,7 @@ class NeighbourFeed:
     def __init__(self, board: NeighbourBoard, i: int) -> None:
         self._board = board
         self.index = i
+        self.lead: float | None = None  # s the plan leads this drone's measured state (None: the board's)
 
     def relative(self, p: np.ndarray) -> np.ndarray:
         """d = p_nb - p (3,) for a drone at ``p``; ``NONE_ABOVE`` with no drone above."""
@@ -97,7 +98,8 @@ class NeighbourFeed:
         if j is None:
             return None
         b = self._board
-        return b.moved(j, x_nodes.shape[0], b._t[self.index] + b.period + (0.0 if measured else b.lead))
+        lead = b.lead if self.lead is None else self.lead
+        return b.moved(j, x_nodes.shape[0], b._t[self.index] + b.period + (0.0 if measured else lead))
 
 
 class _BoardTap:

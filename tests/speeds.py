@@ -46,6 +46,10 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_mean_is_taken_again_on_the_first_steady_tick_after_the_climb": FAST,
         "test_a_swapped_in_constant_the_layer_already_holds_stays_the_layers": FAST,
     },
+    "test_attitude_lag.py": {
+        "*": FAST,
+        "test_on_a_fast_loop_planning_across_the_learned_lag_beats_the_layer_alone": BOTH,
+    },
     "test_air_model.py": {
         "*": FAST,
         "test_the_plant_s_air_beside_the_layer_takes_the_inflow_the_layer_cannot": FLIES,

@@ -36,6 +36,12 @@ from cfknode.flight.learning.gate import GateLimits, operating_envelope
 from cfknode.flight.learning.latency import LatencyPolicy
 from cfknode.flight.learning.trainer_client import TrainerClient
 from cfknode.flight.learning.windows import WakeOnly
+from cfknode.flight.learning.attitude_lag import AttitudeLagIdentifier, AttitudeLagSettings
+
+# s: the command path's low-pass of what the commands leave once a lag is identified (where
+# estimator.command_residual_tau gives none): short is best, as the drag turns with the velocity
+# (docs/history.md#why-a-pure-delay-hurt-the-slow-circle-and-the-three-keys-that-fix-it).
+LEARNED_RESIDUAL_TAU = 0.05
 from cfknode.models.trainer_process import TrainerSettings
 
 
@@ -76,6 +82,23 @@ def trainer_settings(cfg: Config) -> TrainerSettings:
     return TrainerSettings(cfg.knode, training, cfg.online.warm_start, cfg.online.inject, nice,
                            preload=("cfknode.flight.learning.install",), input_bounds=layer and o.layer_input_bounds,
                            wake_only=wake_only(cfg))
+
+
+def attitude_lag_identifier(cfg: Config, learner: OnlineLearner | None, estimator: Any,
+                            slot: ModelSlot | None) -> AttitudeLagIdentifier | None:
+    """The observer that identifies the attitude loop's lag and retunes ``estimator``'s command path
+    (flight/learning/attitude_lag.py); None where it does not run: without online learning beside a fast layer, with
+    ``online.layer_attitude_lag`` false, or where the configuration already gives the command path
+    (``estimator.command_delay``). The learner reports it in the flight's summary."""
+    o = cfg.online
+    if learner is None or not (o.layer_attitude_lag and beside_layer(cfg)) or estimator.command_path.active:
+        return None
+    residual_tau = cfg.estimator.command_residual_tau or LEARNED_RESIDUAL_TAU
+    settings = AttitudeLagSettings(o.attitude_lag_span_s, o.attitude_lag_min_fit, o.attitude_lag_horizon, residual_tau)
+    identifier = AttitudeLagIdentifier(settings, estimator.command_path, learner.log, cfg.vehicle.gravity,
+                                       cfg.controller.rate_hz, neighbour=getattr(slot, "neighbour", None))
+    learner.attitude_lag = identifier
+    return identifier
 
 
 def wake_only(cfg: Config) -> bool:
@@ -302,6 +325,7 @@ def online_learning(controller: Controller, cfg: Config, *, lockstep: bool = Tru
 
 
 __all__ = [
+    "attitude_lag_identifier",
     "check_online",
     "OnlineLearning",
     "online_learning",

@@ -382,12 +382,17 @@ def _flight_parts(sess: Backend, request: _Request, kit: _Kit, supervisor: Super
     deadline = cfg.safety.solve_deadline_s if supervisor.deadlines_apply else None
     controller = Controller(cfg.controller, cfg.vehicle, model=kit.model, solver=sess.wrap_solver(kit.mpc),
                             deadline_s=deadline, ground_z=float(sess.start_position[2]), true_mass=sess.true_mass)
+    from cfknode.app.learning import attitude_lag_identifier
+
+    estimator = VelocityEstimator(cfg.estimator)
     if online is not None:
         controller.observers.append(online)
+        identifier = attitude_lag_identifier(cfg, online, estimator, kit.model)
+        controller.observers.extend([identifier] if identifier is not None else [])
     return FlightParts(
         clock=sess.clock,
         mocap=sess.mocap,
-        estimator=VelocityEstimator(cfg.estimator),
+        estimator=estimator,
         trajectory=request.trajectory,
         controller=controller,
         supervisor=supervisor,

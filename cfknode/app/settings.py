@@ -76,6 +76,12 @@ class OnlineConfig:
         doc="beside a fast layer: command_lag_s")
     layer_input_bounds: bool = setting(
         doc="beside a fast layer: each network is held to the range of its training data (models/input_bounds.py)")
+    layer_attitude_lag: bool = setting(
+        doc="beside a fast layer: identify the attitude loop's lag in flight and plan across it (docs/design.md#attitude-lag)")
+    attitude_lag_span_s: float = setting(unit="s", low=0.25, high=30, doc="s of tracking per fit of the attitude lag")
+    attitude_lag_min_fit: float = setting(low=0, high=1, doc="R^2 of the tilt a fit of the lag needs to be flown")
+    attitude_lag_horizon: float = setting(low=0, high=2,
+        doc="the MPC plans this times the identified lag ahead (estimator.command_delay)")
     trainer_timeout: float = setting(unit="s", low=0, high=600, open_low=True,
         doc="wall s without a result: the trainer is killed and restarted")
     trainer_start_timeout: float = setting(unit="s", low=1, high=3600,

@@ -1,7 +1,6 @@
 """Online learning, flight side (the paper's Algorithm 1): the learner that ties the parts together.
 
-No torch here: the trainer is a child process (``cfknode.models.trainer_process``) and this
-side only sends numpy windows and receives numpy ``ModelFile``s.
+No torch here: the trainer is a child process (``cfknode.models.trainer_process``); this side sends numpy windows.
 
 One ``OnlineLearner`` is a loop observer. Its ``on_tick`` runs after every tick's setpoint is
 decided, i.e. between ticks, and does, in order:
@@ -103,6 +102,7 @@ class OnlineLearner(LearnerReports, TrainerJudging, FlyingRejudge):
         self.swaps: list[SwapEvent] = []
         self.windows: list[tuple[int, float, float, int]] = []  # (index, t0, t1, version) of finished windows
         self.recent_models: deque[tuple[int, ModelFile]] = deque(maxlen=8)  # newest swapped-in files, for inspection
+        self.attitude_lag: Any = None  # the attitude loop's lag identified beside it (attitude_lag.py), for the summary
 
     # The loop calls this after every tick.
     def on_tick(self, tick: TickLike) -> None:

@@ -133,6 +133,7 @@ class LearnerReports:
             "trainer_cpu_s": round(s.trainer_cpu_s, 3),
             "gates_in_trainer": s.gate_jobs,
             "final_model_version": self._flying.version,
+            **(self.attitude_lag.summary_fields() if getattr(self, "attitude_lag", None) is not None else {}),
         }
 
 

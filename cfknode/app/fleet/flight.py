@@ -42,7 +42,7 @@ from cfknode.app.fleet.landing_order import StallHold
 from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
-from cfknode.app.learning import check_online, keep_learned_model, online_model_slot
+from cfknode.app.learning import attitude_lag_identifier, check_online, keep_learned_model, online_model_slot
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import (_controller_label, air_model_observers, build_controller, build_model_slot,
@@ -336,13 +336,15 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
         deadline = d.config.safety.solve_deadline_s if sup.deadlines_apply else None
         controller = Controller(d.config.controller, d.config.vehicle, model=model, solver=d.wrap_solver(mpc),
                                 deadline_s=deadline, ground_z=ground[i])
+        estimator = VelocityEstimator(d.config.estimator)
         if learners[i] is not None:
-            controller.observers.append(learners[i])
+            identifier = attitude_lag_identifier(d.config, learners[i], estimator, model)
+            controller.observers.extend([learners[i], *([identifier] if identifier is not None else [])])
         if flying.board is not None and layer_sees_wakes(d.config) and controller.adaptation is not None:
             controller.adaptation.neighbour = flying.board.feed(i)
         flog.follow_plan(names[i], lambda c=controller: c.predicted_positions)
         taps = [flying.board.tap(i)] if flying.board is not None else []
-        parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=VelocityEstimator(d.config.estimator),
+        parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=estimator,
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
                                  observers=[coordinator.tap(i), *taps, *d.fault_observers(model),
                                             *air_model_observers(d.config, model)], estop=box,
