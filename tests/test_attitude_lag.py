@@ -90,15 +90,16 @@ class _Log:
         self.events.append({"topic": topic, "t": t, **msg})
 
 
-def _identifier(path, neighbour=None) -> tuple[AttitudeLagIdentifier, _Log]:
+def _identifier(path, slot=None) -> tuple[AttitudeLagIdentifier, _Log]:
     log = _Log()
-    return AttitudeLagIdentifier(AttitudeLagSettings(1.0, 0.9, 0.45, 0.05), path, log, G, 400.0, neighbour), log
+    return AttitudeLagIdentifier(AttitudeLagSettings(1.0, 0.9, 0.45, 0.05), path, log, G, 400.0, slot), log
 
 
 def test_the_identifier_retunes_the_command_path_to_the_lag_it_measured() -> None:
     path = CommandDelayPredictor(0.0)
     feed = SimpleNamespace(lead=None)
-    ident, log = _identifier(path, feed)
+    slot = SimpleNamespace(neighbour=feed, vertical_lead=0.0)
+    ident, log = _identifier(path, slot)
     ticks = list(_ticks(0.12, 6.0))
     for tick in ticks[: int((MIN_KEPT - 0.5) / DT)]:
         ident.on_tick(tick)
@@ -108,6 +109,7 @@ def test_the_identifier_retunes_the_command_path_to_the_lag_it_measured() -> Non
     assert path.active and path.lag == pytest.approx(0.12, abs=0.01)
     assert path.delay == pytest.approx(0.45 * path.lag) and path.delay_z == 0.0 and path.residual_tau == 0.05
     assert feed.lead == path.delay  # a fleet drone's drone above is taken as far ahead as the plan starts
+    assert slot.vertical_lead == path.delay  # and a wake model's force where the drone is as the thrust acts
     assert len(log.events) == 1 and log.events[0]["topic"] == "/events" and "attitude loop lag" in log.events[0]["text"]
     fields = ident.summary_fields()
     assert fields["attitude_lag_s"] == path.lag and fields["attitude_lag_kept"] >= MIN_KEPT
@@ -165,3 +167,52 @@ def test_on_a_fast_loop_planning_across_the_learned_lag_beats_the_layer_alone(tm
     assert said, "no lag identified"
     lag_ms = float(said[0].split("attitude loop lag ")[1].split(" ms")[0])
     assert 110.0 <= lag_ms <= 200.0  # the simulated firmware's attitude loop (a flight's median: 0.14-0.16 s)
+
+
+class _WakeModel:
+    takes_neighbour = True
+
+    def __init__(self, wake_only: bool) -> None:
+        self.wake_only = wake_only
+        self.seen: list[np.ndarray] = []
+
+    def linearise(self, x_nodes, u_nodes, nb):
+        self.seen.append(np.array(x_nodes))
+        n = len(x_nodes)
+        return np.zeros((n, 3)), np.zeros((n, 3, 6)), np.zeros((n, 3, 3))
+
+
+class _Feed:
+    def __init__(self) -> None:
+        self.asked: list[tuple[np.ndarray, bool]] = []
+
+    def horizon(self, x_nodes, measured=False):
+        self.asked.append((np.array(x_nodes), measured))
+        return np.zeros((len(x_nodes), 3)) + [0.0, 0.0, 0.3]
+
+    def relative(self, p):
+        return np.array([0.0, 0.0, 0.3])
+
+
+@pytest.mark.parametrize("wake_only", [True, False])
+def test_a_wake_only_model_is_taken_where_the_drone_is_when_the_thrust_acts(wake_only: bool) -> None:
+    """The plan's horizontal nodes lead by the command delay; the thrust acts at once (``vertical_lead``)."""
+    from cfknode.flight.model_slot import ModelSlot
+
+    model = _WakeModel(wake_only)
+    slot = ModelSlot(model, version=1)
+    slot.neighbour = _Feed()
+    x = np.zeros((4, 6))
+    x[:, 0] = [0.0, 0.05, 0.10, 0.15]
+    x[:, 3] = 1.0  # 1 m/s along x
+    slot.residual(x, np.zeros((4, 3)))
+    assert np.array_equal(model.seen[-1], x) and slot.neighbour.asked[-1][1] is False  # no lead: the plan's nodes
+    slot.vertical_lead = 0.065
+    slot.residual(x, np.zeros((4, 3)))
+    if wake_only:
+        assert model.seen[-1][:, 0] == pytest.approx(x[:, 0] - 0.065)  # 65 mm back along the track
+        assert slot.neighbour.asked[-1][1] is True  # and the drone above where it is now, not the plan's lead later
+    else:  # a model of the drone's own state too: its horizontal outputs fly with the plan
+        assert np.array_equal(model.seen[-1], x) and slot.neighbour.asked[-1][1] is False
+    slot.residual_at(x[0], np.zeros(3))
+    assert np.array_equal(model.seen[-1], x[:1])  # at the measured state: as measured

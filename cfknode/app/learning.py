@@ -96,7 +96,7 @@ def attitude_lag_identifier(cfg: Config, learner: OnlineLearner | None, estimato
     residual_tau = cfg.estimator.command_residual_tau or LEARNED_RESIDUAL_TAU
     settings = AttitudeLagSettings(o.attitude_lag_span_s, o.attitude_lag_min_fit, o.attitude_lag_horizon, residual_tau)
     identifier = AttitudeLagIdentifier(settings, estimator.command_path, learner.log, cfg.vehicle.gravity,
-                                       cfg.controller.rate_hz, neighbour=getattr(slot, "neighbour", None))
+                                       cfg.controller.rate_hz, slot=slot)
     learner.attitude_lag = identifier
     return identifier
 

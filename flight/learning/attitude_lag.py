@@ -108,16 +108,17 @@ class CommandPathModel:
 class AttitudeLagIdentifier:
     """A tick observer: identifies the lag from the ticks it sees and retunes ``path`` (a ``CommandDelayPredictor``).
 
-    ``neighbour``: a fleet drone's ``NeighbourFeed``, whose drone above is taken as far ahead as the plan starts.
-    ``log``: where each kept fit is said (``/events``)."""
+    ``slot``: the drone's ``ModelSlot``: a fleet drone's drone above is taken as far ahead as the plan starts, and a
+    wake-only model's vertical force where the drone is when the thrust acts. ``log``: where each kept fit is said
+    (``/events``)."""
 
     def __init__(self, settings: AttitudeLagSettings, path: Any, log: Any, gravity: float,
-                 rate_hz: float, neighbour: Any = None) -> None:
+                 rate_hz: float, slot: Any = None) -> None:
         self.s = settings
         self._path = path
         self._log = log
         self._g = gravity
-        self._neighbour = neighbour
+        self._slot = slot
         self._max_gap = 3.0 / rate_hz
         n = int(math.ceil(settings.span_s * rate_hz)) + 8
         self._t = np.empty(n)
@@ -163,8 +164,10 @@ class AttitudeLagIdentifier:
             return
         self.flown = CommandPathModel(self.s.horizon * tau, tau, self.s.residual_tau)
         self._path.retune(self.flown.delay, self.flown.lag, self.flown.residual_tau)
-        if self._neighbour is not None:
-            self._neighbour.lead = self.flown.delay
+        if self._slot is not None:
+            self._slot.vertical_lead = self.flown.delay
+            if getattr(self._slot, "neighbour", None) is not None:
+                self._slot.neighbour.lead = self.flown.delay
         self._log.write("/events", now, {
             "level": "info", "source": "online",
             "text": f"attitude loop lag {tau * 1e3:.0f} ms (fit R^2 {fit.fit:.3f}, {fit.fit_none:.3f} with none): "

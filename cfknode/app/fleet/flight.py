@@ -400,9 +400,11 @@ def neighbour_board(cfg: Config, refs: Sequence[HoldableReference], slots: Seque
     if not (inputs or (len(refs) >= 2 and layer_sees_wakes(cfg))):
         return None
     board = NeighbourBoard(refs, 1.0 / c.rate_hz, c.dt, c.horizon, lead=cfg.estimator.command_delay)
+    e = cfg.estimator
     for i, slot in enumerate(slots):
         if slot is not None and inputs:
             slot.neighbour = board.feed(i)
+            slot.vertical_lead = e.command_delay - (e.command_delay if e.command_delay_z is None else e.command_delay_z)
     return board
 
 
