@@ -136,14 +136,18 @@ class CommandDelayPredictor:
         if not self.active or not self._sent:
             return est
         t = est.t
-        times = np.array([s for s, _ in self._sent])
-        accs = np.array([a for _, a in self._sent])
+        # An axis with no delay is neither moved nor corrected (its residual would be added times 0), and with
+        # the lag and no held group the commands are not needed as arrays (0.06 ms of a tick's median).
+        groups = [g for g in self._groups() if g[0] > 0.0]
+        held = any(not lagged for _, _, lagged in groups)
+        times = np.array([s for s, _ in self._sent]) if held else np.empty(0)
+        accs = np.array([a for _, a in self._sent]) if held else np.empty((0, 3))
         self._relax(t)
         if self.residual_tau > 0.0:
-            self._learn(t, np.asarray(est.v, float), times, accs)
+            self._learn(t, np.asarray(est.v, float), times, accs, groups)
         p = np.array(est.p, dtype=float)
         v = np.array(est.v, dtype=float)
-        for d, axes, lagged in self._groups():
+        for d, axes, lagged in groups:
             if lagged:
                 dv, dp = lag_increments(self._flown, self._sent[-1][1], self.lag, d)
             else:
@@ -160,7 +164,8 @@ class CommandDelayPredictor:
             return [(self.delay, np.array([0, 1]), True), (self.delay_z, np.array([2]), False)]
         return [(d, axes, False) for d, axes in _groups(self._delays())]
 
-    def _learn(self, t: float, v: np.ndarray, times: np.ndarray, accs: np.ndarray) -> None:
+    def _learn(self, t: float, v: np.ndarray, times: np.ndarray, accs: np.ndarray,
+               groups: list[tuple[float, np.ndarray, bool]]) -> None:
         """Update the unexplained acceleration from the velocity change over the last delay (per axis)."""
         self._seen.append((t, v.copy(), self._flown_sum.copy()))
         d_max = max(self.delay, self.delay_z)
@@ -172,7 +177,7 @@ class CommandDelayPredictor:
             return  # not a whole delay seen yet
         # Over [then_t, t] the vehicle flew the commands sent a delay before (per axis group).
         flown = np.zeros(3)
-        for d, axes, lagged in self._groups():
+        for d, axes, lagged in groups:
             if lagged:
                 flown[axes] = (self._flown_sum - then_sum)[axes]
             else:

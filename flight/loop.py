@@ -333,9 +333,9 @@ class _Loop:
         plan_est, plan_ref = path.ahead(tick.est), tick.ref
         if tick.ref is tick.samples and self.held is None:
             plan_ref = self.traj.sample(self.controller.preview_times(now + path.delay))
-            if path.delay_z != path.delay:
-                # z is predicted over its own delay: its reference from there too, or its feed-forward acts early.
-                z = self.traj.sample(self.controller.preview_times(now + path.delay_z))
+            if path.delay_z != path.delay:  # z's reference over z's own delay (else its feed-forward acts early)
+                z = tick.samples if not path.delay_z else self.traj.sample(
+                    self.controller.preview_times(now + path.delay_z))
                 plan_ref = dataclasses.replace(plan_ref, **{k: _with_z(getattr(plan_ref, k), getattr(z, k))
                                                             for k in ("p", "v", "a")})
         return plan_est, plan_ref
