@@ -6,8 +6,8 @@ about a first-order lag of 0.1-0.2 s. On a fast loop that lag, not the air, is m
 battery), not of the manoeuvre, and it can be measured without any model of the air: the horizontal acceleration the
 measured attitude gives, |u + g| along the body's z axis, against the same along the attitude sent (the setpoint's
 roll and pitch: what the thrust clamp and the tilt limit let through). Every ``span_s`` of tracking this identifier
-fits flown = k lag_tau(sent) + c per axis over a grid of time constants; a fit that explains the tilt
-(R^2 of at least ``min_fit``) and clearly better than no lag is kept, and the command path
+fits flown = lag_tau(sent) + c per axis (the gain held at 1) over a grid of time constants; a fit that explains
+the tilt (R^2 of at least ``min_fit``) and clearly better than no lag is kept, and the command path
 (``flight/latency.py``) then predicts through the median of the lags kept, planning ``horizon`` times it ahead.
 """
 
@@ -21,6 +21,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from cfknode.flight.adaptation.loop import body_z_floats
+from cfknode.models.quadrotor import euler_zyx_to_quat, quat_to_euler_zyx
 
 TAUS = np.round(np.arange(0.02, 0.4001, 0.02), 3)  # s: the grid of time constants tried (refined between points)
 MIN_GAIN = 0.05  # the R^2 a kept fit must gain over no lag (a hover's noise fits any lag about as well)
@@ -51,12 +52,9 @@ class AttitudeLagSettings:
 def sent_body_z(roll_deg: float, pitch_deg: float, q: Any) -> tuple[float, float]:
     """The world x and y of the body z axis the setpoint asks for: its roll and pitch about the measured yaw of ``q``
     (w, x, y, z), as the firmware's angle loop rebuilds it (``flight/mellinger.py``'s ``force_to_setpoint``)."""
-    w, x, y, z = (float(c) for c in q)
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    r, p = math.radians(roll_deg), math.radians(pitch_deg)
-    hx, hy = math.cos(r) * math.sin(p), -math.sin(r)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return cy * hx - sy * hy, sy * hx + cy * hy
+    yaw = quat_to_euler_zyx(np.asarray(q, dtype=float))[2]
+    zx, zy, _ = body_z_floats(euler_zyx_to_quat(math.radians(roll_deg), math.radians(pitch_deg), yaw))
+    return zx, zy
 
 
 def lagged(u: np.ndarray, tau: float, dt: float) -> np.ndarray:
@@ -98,11 +96,10 @@ def fit_lag(t: np.ndarray, u: np.ndarray, flown: np.ndarray) -> LagFit:
 
 @dataclass(frozen=True)
 class CommandPathModel:
-    """What the command path flies: its horizon (s ahead), the lag (s) and the residual's low-pass (s)."""
+    """What the command path flies: its horizon (s ahead) and the lag (s)."""
 
     delay: float
     lag: float
-    residual_tau: float
 
 
 class AttitudeLagIdentifier:
@@ -162,8 +159,8 @@ class AttitudeLagIdentifier:
         tau = float(np.median(self.kept))
         if self.flown is not None and abs(tau - self.flown.lag) <= RETUNE_STEP:
             return
-        self.flown = CommandPathModel(self.s.horizon * tau, tau, self.s.residual_tau)
-        self._path.retune(self.flown.delay, self.flown.lag, self.flown.residual_tau)
+        self.flown = CommandPathModel(self.s.horizon * tau, tau)
+        self._path.retune(self.flown.delay, self.flown.lag, self.s.residual_tau)
         if self._slot is not None:
             self._slot.vertical_lead = self.flown.delay
             if getattr(self._slot, "neighbour", None) is not None:
@@ -181,4 +178,5 @@ class AttitudeLagIdentifier:
         return out
 
 
-__all__ = ["AttitudeLagIdentifier", "AttitudeLagSettings", "CommandPathModel", "LagFit", "fit_lag", "lagged", "sent_body_z"]
+__all__ = ["AttitudeLagIdentifier", "AttitudeLagSettings", "CommandPathModel", "LagFit", "fit_lag", "lagged",
+           "sent_body_z"]

@@ -32,6 +32,7 @@ class LearnerReports:
 
     rounds: list[Any]
     log: Any
+    attitude_lag: Any  # the attitude loop's lag identified beside the learner (attitude_lag.py), or None
 
     @property
     def learned_model(self) -> ModelFile | None:
@@ -133,7 +134,7 @@ class LearnerReports:
             "trainer_cpu_s": round(s.trainer_cpu_s, 3),
             "gates_in_trainer": s.gate_jobs,
             "final_model_version": self._flying.version,
-            **(self.attitude_lag.summary_fields() if getattr(self, "attitude_lag", None) is not None else {}),
+            **(self.attitude_lag.summary_fields() if self.attitude_lag is not None else {}),
         }
 
 
