@@ -84,13 +84,18 @@ class CommandDelayPredictor:
         self.residual = np.zeros(3)
         self._residual_t: float | None = None
 
-    def retune(self, delay: float, lag: float, residual_tau: float) -> None:
+    def retune(self, delay: float, lag: float, residual_tau: float, residual: Any = None) -> None:
         """Predict over ``delay`` through ``lag`` from now on (the vertical at once): an identified attitude loop's
-        lag (flight/learning/attitude_lag.py). What was kept under the old settings is dropped."""
+        lag (flight/learning/attitude_lag.py). What was kept under the old settings is dropped. ``residual``: the
+        unexplained acceleration (x, y) to start from, the fast layer's offset, an estimate of the same force;
+        started at zero instead, a wind's 0.3 m/s^2 is missing from the plan for the first delay and its low-pass,
+        and the switch costs more than planning ahead gains on a slow circle (docs/results.md)."""
         if min(delay, lag, residual_tau) < 0.0:
             raise ValueError(f"command delay, lag and residual_tau must be >= 0 s, got {delay}, {lag}, {residual_tau}")
         self.delay, self.delay_z, self.lag, self.residual_tau = delay, 0.0, lag, residual_tau
         self.reset()
+        if residual is not None and residual_tau > 0.0:
+            self.residual = np.array([float(residual[0]), float(residual[1]), 0.0])
 
     @property
     def active(self) -> bool:

@@ -14,7 +14,7 @@ from cfknode.app.bench.learning_cells import CELLS
 from cfknode.app.config import load_config
 from cfknode.app.learning import LEARNED_RESIDUAL_TAU, attitude_lag_identifier
 from cfknode.app.logs.reader import read_log
-from cfknode.flight.estimator import VelocityEstimator
+from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.latency import CommandDelayPredictor
 from cfknode.flight.learning.attitude_lag import (
     MIN_KEPT, AttitudeLagIdentifier, AttitudeLagSettings, fit_lag, lagged, sent_body_z,
@@ -67,8 +67,9 @@ def _attitude(zx: float, zy: float) -> tuple[float, float, float, float]:
     return (w, -zy / (2.0 * w), zx / (2.0 * w), 0.0)
 
 
-def _ticks(tau: float, seconds: float, scale: float = 1.0, state: str = "TRACK"):
-    """Ticks of a vehicle whose attitude follows the one sent through a lag of ``tau`` s (0: at once)."""
+def _ticks(tau: float, seconds: float, scale: float = 1.0, state: str = "TRACK", layer=None):
+    """Ticks of a vehicle whose attitude follows the one sent through a lag of ``tau`` s (0: at once); ``layer``:
+    the fast layer's estimate each tick carries."""
     cfg = load_config()
     n = int(seconds / DT)
     u = scale * _excitation(n, seed=4)
@@ -79,7 +80,7 @@ def _ticks(tau: float, seconds: float, scale: float = 1.0, state: str = "TRACK")
         q = _attitude(flown[k, 0] / thrust, flown[k, 1] / thrust)
         sp = force_to_setpoint(acc + [0.0, 0.0, G], 0.0, q, cfg.vehicle, cfg.controller)
         yield SimpleNamespace(t=k * DT, est=SimpleNamespace(q=q), acc=acc, source="mpc", supervisor_state=state,
-                              setpoint=sp)
+                              setpoint=sp, layer=layer)
 
 
 class _Log:
@@ -113,6 +114,29 @@ def test_the_identifier_retunes_the_command_path_to_the_lag_it_measured() -> Non
     assert len(log.events) == 1 and log.events[0]["topic"] == "/events" and "attitude loop lag" in log.events[0]["text"]
     fields = ident.summary_fields()
     assert fields["attitude_lag_s"] == path.lag and fields["attitude_lag_kept"] >= MIN_KEPT
+
+
+def test_the_command_path_starts_from_the_force_the_layer_already_holds() -> None:
+    # A wind the layer holds (0.3, -0.2) m/s^2 is in the plan from the switch on, not after a delay and a low-pass.
+    path = CommandDelayPredictor(0.0)
+    layer = SimpleNamespace(offset=np.array([0.3, -0.2, 0.8]))
+    ident, _ = _identifier(path)
+    for tick in _ticks(0.12, 6.0, layer=layer):
+        ident.on_tick(tick)
+    assert path.active and path.residual.tolist() == [0.3, -0.2, 0.0]  # the vertical has no delay: not its
+    est = StateEstimate(t=10.0, p=np.zeros(3), v=np.zeros(3), q=np.array([1.0, 0.0, 0.0, 0.0]), yaw=0.0)
+    path.note(10.0, np.zeros(3))
+    ahead = path.ahead(est)
+    d = path.delay
+    assert ahead.p[:2] == pytest.approx([0.5 * 0.3 * d * d, -0.5 * 0.2 * d * d])  # the force over the delay
+    assert ahead.v[:2] == pytest.approx([0.3 * d, -0.2 * d])
+
+
+def test_without_a_layer_or_a_residual_model_the_command_path_starts_from_nothing() -> None:
+    for start, tau in ((None, 0.05), ((0.3, -0.2), 0.0)):
+        path = CommandDelayPredictor(0.0)
+        path.retune(0.07, 0.15, tau, start)
+        assert path.residual.tolist() == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize("case", ["instant", "still", "landing"])

@@ -125,6 +125,7 @@ class AttitudeLagIdentifier:
         self.fits: list[LagFit] = []  # every span fitted
         self.kept: list[float] = []  # the lags of the fits kept
         self.flown: CommandPathModel | None = None
+        self._offset: Any = None  # the fast layer's newest offset: what the command path's residual starts from
 
     def on_tick(self, tick: Any) -> None:
         est = tick.est
@@ -133,6 +134,8 @@ class AttitudeLagIdentifier:
             self._n = 0
             return
         acc = np.asarray(tick.acc, dtype=float)
+        layer = getattr(tick, "layer", None)
+        self._offset = None if layer is None else layer.offset
         i = self._n
         self._t[i] = tick.t
         thrust = math.sqrt(acc[0] ** 2 + acc[1] ** 2 + (acc[2] + self._g) ** 2)
@@ -160,7 +163,7 @@ class AttitudeLagIdentifier:
         if self.flown is not None and abs(tau - self.flown.lag) <= RETUNE_STEP:
             return
         self.flown = CommandPathModel(self.s.horizon * tau, tau)
-        self._path.retune(self.flown.delay, self.flown.lag, self.s.residual_tau)
+        self._path.retune(self.flown.delay, self.flown.lag, self.s.residual_tau, self._offset)
         if self._slot is not None:
             self._slot.vertical_lead = self.flown.delay
             if getattr(self._slot, "neighbour", None) is not None:
