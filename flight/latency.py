@@ -50,6 +50,15 @@ def lag_increments(a0: np.ndarray, u: np.ndarray, tau: float, h: float) -> tuple
     return dv, dp
 
 
+def lag_increments_xy(ax: float, ay: float, ux: float, uy: float, tau: float,
+                      h: float) -> tuple[float, float, float, float]:
+    """``lag_increments`` for x and y on Python floats, the same operations in the same order (every tick:
+    numpy's per-call cost on two numbers is most of the prediction's); returns dv_x, dv_y, dp_x, dp_y."""
+    k = -math.expm1(-h / tau)
+    tk, c, e = tau * k, 0.5 * h * h, tau * (h - tau * k)
+    return ux * h + (ax - ux) * tk, uy * h + (ay - uy) * tk, ux * c + (ax - ux) * e, uy * c + (ay - uy) * e
+
+
 def unexplained_acceleration(v_now: np.ndarray, v_then: np.ndarray, flown_dv: np.ndarray, span: float) -> np.ndarray:
     """The mean acceleration over ``span`` seconds the commands do not account for (drag, the layer's rest)."""
     return (np.asarray(v_now, float) - np.asarray(v_then, float) - flown_dv) / span
@@ -75,14 +84,16 @@ class CommandDelayPredictor:
         self.residual_tau = residual_tau
         # lag > 0: x and y fly the commands through a first-order lag (the attitude loop), not a delay.
         self.lag = lag
-        self._flown = np.zeros(3)  # the lagged acceleration at ``_flown_t`` (x, y used)
+        self._flown = (0.0, 0.0)  # the lagged acceleration at ``_flown_t``, x and y
         self._flown_t: float | None = None
-        self._flown_sum = np.zeros(3)  # its integral since the first command (the residual's model share)
+        self._flown_sum = (0.0, 0.0)  # its integral since the first command (the residual's model share)
         self._sent: deque[tuple[float, np.ndarray]] = deque()
         # (t, v, the lagged acceleration's integral) at each estimate ``ahead`` was given
-        self._seen: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        self._seen: deque[tuple[float, np.ndarray, tuple[float, float]]] = deque()
         self.residual = np.zeros(3)
         self._residual_t: float | None = None
+        self._u_xy = (0.0, 0.0)  # the newest command's x and y (the lag's target)
+        self._retime()
 
     def retune(self, delay: float, lag: float, residual_tau: float, residual: Any = None) -> None:
         """Predict over ``delay`` through ``lag`` from now on (the vertical at once): an identified attitude loop's
@@ -94,8 +105,14 @@ class CommandDelayPredictor:
             raise ValueError(f"command delay, lag and residual_tau must be >= 0 s, got {delay}, {lag}, {residual_tau}")
         self.delay, self.delay_z, self.lag, self.residual_tau = delay, 0.0, lag, residual_tau
         self.reset()
+        self._retime()
         if residual is not None and residual_tau > 0.0:
             self.residual = np.array([float(residual[0]), float(residual[1]), 0.0])
+
+    def _retime(self) -> None:
+        """The axis groups with a delay, kept: they change only with the settings (``retune``)."""
+        self._active_groups = [g for g in self._groups() if g[0] > 0.0]
+        self._any_held = any(not lagged for _, _, lagged in self._active_groups)
 
     @property
     def active(self) -> bool:
@@ -109,18 +126,19 @@ class CommandDelayPredictor:
         self._seen.clear()
         self.residual = np.zeros(3)
         self._residual_t = None
-        self._flown = np.zeros(3)
+        self._flown = (0.0, 0.0)
         self._flown_t = None
-        self._flown_sum = np.zeros(3)
+        self._flown_sum = (0.0, 0.0)
 
     def _relax(self, t: float) -> None:
         """Bring the lagged acceleration to ``t`` under the newest command sent."""
         if self.lag <= 0.0 or self._flown_t is None or t <= self._flown_t or not self._sent:
             return
-        u = self._sent[-1][1]
-        dv, _ = lag_increments(self._flown, u, self.lag, t - self._flown_t)
-        self._flown_sum += dv
-        self._flown = u + (self._flown - u) * math.exp(-(t - self._flown_t) / self.lag)
+        (fx, fy), (ux, uy), h = self._flown, self._u_xy, t - self._flown_t
+        dvx, dvy, _, _ = lag_increments_xy(fx, fy, ux, uy, self.lag, h)
+        self._flown_sum = (self._flown_sum[0] + dvx, self._flown_sum[1] + dvy)
+        e = math.exp(-h / self.lag)
+        self._flown = (ux + (fx - ux) * e, uy + (fy - uy) * e)
         self._flown_t = t
 
     def note(self, t: float, acc: np.ndarray) -> None:
@@ -130,7 +148,9 @@ class CommandDelayPredictor:
         self._relax(t)
         if self._flown_t is None:
             self._flown_t = t
-        self._sent.append((t, np.array(acc, dtype=float)))
+        command = np.array(acc, dtype=float)
+        self._sent.append((t, command))
+        self._u_xy = (float(command[0]), float(command[1]))
         # Keep the newest command sent at or before t - reach: it is still acting then.
         reach = max(self.delay, self.delay_z) * (2.0 if self.residual_tau > 0.0 else 1.0)
         while len(self._sent) > 1 and self._sent[1][0] <= t - reach:
@@ -143,8 +163,7 @@ class CommandDelayPredictor:
         t = est.t
         # An axis with no delay is neither moved nor corrected (its residual would be added times 0), and with
         # the lag and no held group the commands are not needed as arrays (0.06 ms of a tick's median).
-        groups = [g for g in self._groups() if g[0] > 0.0]
-        held = any(not lagged for _, _, lagged in groups)
+        groups, held = self._active_groups, self._any_held
         times = np.array([s for s, _ in self._sent]) if held else np.empty(0)
         accs = np.array([a for _, a in self._sent]) if held else np.empty((0, 3))
         self._relax(t)
@@ -153,10 +172,16 @@ class CommandDelayPredictor:
         p = np.array(est.p, dtype=float)
         v = np.array(est.v, dtype=float)
         for d, axes, lagged in groups:
-            if lagged:
-                dv, dp = lag_increments(self._flown, self._sent[-1][1], self.lag, d)
-            else:
-                dv, dp = held_increments(times, accs, t - d, t)
+            if lagged:  # x and y: on floats, as numpy would do them element by element
+                dvx, dvy, dpx, dpy = lag_increments_xy(*self._flown, *self._u_xy, self.lag, d)
+                rx, ry, c = float(self.residual[0]), float(self.residual[1]), 0.5 * d * d
+                vx, vy = float(v[0]), float(v[1])
+                p[0] += vx * d + dpx + c * rx
+                p[1] += vy * d + dpy + c * ry
+                v[0] = vx + (dvx + d * rx)
+                v[1] = vy + (dvy + d * ry)
+                continue
+            dv, dp = held_increments(times, accs, t - d, t)
             extra = self.residual[axes]
             p[axes] += v[axes] * d + dp[axes] + 0.5 * d * d * extra
             v[axes] += dv[axes] + d * extra
@@ -172,7 +197,7 @@ class CommandDelayPredictor:
     def _learn(self, t: float, v: np.ndarray, times: np.ndarray, accs: np.ndarray,
                groups: list[tuple[float, np.ndarray, bool]]) -> None:
         """Update the unexplained acceleration from the velocity change over the last delay (per axis)."""
-        self._seen.append((t, v.copy(), self._flown_sum.copy()))
+        self._seen.append((t, v.copy(), self._flown_sum))
         d_max = max(self.delay, self.delay_z)
         while len(self._seen) > 1 and self._seen[1][0] <= t - d_max:
             self._seen.popleft()
@@ -184,7 +209,7 @@ class CommandDelayPredictor:
         flown = np.zeros(3)
         for d, axes, lagged in groups:
             if lagged:
-                flown[axes] = (self._flown_sum - then_sum)[axes]
+                flown[0], flown[1] = self._flown_sum[0] - then_sum[0], self._flown_sum[1] - then_sum[1]
             else:
                 flown[axes] = held_increments(times, accs, then_t - d, t - d)[0][axes]
         measured = unexplained_acceleration(v, then_v, flown, span)

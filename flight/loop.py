@@ -25,7 +25,7 @@ from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.tick_guard import GuardedLog, GuardedObserver, fallback_command, hold_reference
 from cfknode.kernel.clock import Clock
 from cfknode.kernel.imu import ImuSource
-from cfknode.kernel.reference import RefSamples, Reference
+from cfknode.kernel.reference import RefSamples, Reference, sample_twice
 from cfknode.kernel.setpoint import AttitudeSetpoint
 from cfknode.mocap.source import PoseSource
 from cfknode.safety.operator import EstopMailbox, estop_watch, stop_signal_handler
@@ -149,6 +149,7 @@ class _Tick:
     ref: Any = None
     source: str = ""
     samples: RefSamples | None = None
+    samples_ahead: RefSamples | None = None  # the reference a command delay later (a plan from the state ahead)
     command: Any = None
     sp: AttitudeSetpoint = MOTORS_OFF
     solve_s: float = 0.0
@@ -260,16 +261,16 @@ class _Loop:
     def plan(self, tick: _Tick) -> None:
         """The trajectory's preview (or the hold once it has raised) and the supervisor's choice."""
         now, est = tick.now, tick.est
-        times = self.controller.preview_times(now)
+        times, path = self.controller.preview_times(now), self.parts.estimator.command_path
         if self.held is None:
             try:
-                tick.samples = self.traj.sample(times)
+                later = self.controller.preview_times(now + path.delay) if path.active else None
+                tick.samples, tick.samples_ahead = sample_twice(self.traj, times, later)
             except Exception as exc:  # noqa: BLE001
                 self.fault("the trajectory", exc, ERROR_LAND)
                 where = est.p if est is not None else self.rec.p_ref[max(self.rec.ticks - 1, 0)]
                 self.held = hold_reference(times - now, where)
-        if self.held is not None:
-            held = self.held
+        if (held := self.held) is not None:
             tick.samples = RefSamples(held.t + now, held.p, held.v, held.a, held.yaw)
         try:
             tick.action, tick.ref, tick.source = self.sup.plan(now, est, tick.samples)
@@ -302,9 +303,7 @@ class _Loop:
         command = None
         if not self.controller_failed:
             try:
-                plan_est, plan_ref = est, ref
-                if self.parts.estimator.command_path.active:
-                    plan_est, plan_ref = self.ahead(tick)
+                plan_est, plan_ref = self.ahead(tick) if self.parts.estimator.command_path.active else (est, ref)
                 command = controller.step(now, plan_est, plan_ref, pose_fresh=tick.fresh, phase=self.sup.state.value,
                                           observed=est, brake_tilt_deg=self.sup.brake_tilt_deg)
                 tick.adapted = controller.adaptation is not None
@@ -332,7 +331,7 @@ class _Loop:
         path, now = self.parts.estimator.command_path, tick.now
         plan_est, plan_ref = path.ahead(tick.est), tick.ref
         if tick.ref is tick.samples and self.held is None:
-            plan_ref = self.traj.sample(self.controller.preview_times(now + path.delay))
+            plan_ref = tick.samples_ahead
             if path.delay_z != path.delay:  # z's reference over z's own delay (else its feed-forward acts early)
                 z = tick.samples if not path.delay_z else self.traj.sample(
                     self.controller.preview_times(now + path.delay_z))

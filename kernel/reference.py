@@ -32,3 +32,15 @@ class Reference(Protocol):
     def final_position(self) -> np.ndarray: ...
 
     def sample(self, t: np.ndarray) -> RefSamples: ...
+
+
+def sample_twice(reference: Reference, times: np.ndarray,
+                 later: np.ndarray | None) -> tuple[RefSamples, RefSamples | None]:
+    """``reference`` at ``times`` and at ``later`` (None: not needed) in one call: a sample's cost is mostly per
+    call, and a plan from a state predicted ahead needs the reference over both (flight/latency.py)."""
+    if later is None:
+        return reference.sample(times), None
+    both = reference.sample(np.concatenate((times, later)))
+    n = len(times)
+    first = RefSamples(both.t[:n], both.p[:n], both.v[:n], both.a[:n], both.yaw[:n])
+    return first, RefSamples(both.t[n:], both.p[n:], both.v[n:], both.a[n:], both.yaw[n:])

@@ -295,6 +295,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_the_unexplained_acceleration_is_learned_and_predicted_with": FAST,
         "test_vertical_delay_and_residual_settings_are_checked": FAST,
         "test_lag_increments_match_the_first_order_lag_exactly": FAST,
+        "test_the_lag_s_float_twin_is_the_array_function_to_the_bit": FAST,
         "test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command": FAST,
         "test_a_vertical_delay_of_its_own_takes_the_vertical_reference_from_there": FAST,
     },

@@ -175,6 +175,17 @@ def test_lag_increments_match_the_first_order_lag_exactly():
     np.testing.assert_allclose(dp, 0.5 * u * h * h, atol=1e-15)
 
 
+def test_the_lag_s_float_twin_is_the_array_function_to_the_bit():
+    from cfknode.flight.latency import lag_increments, lag_increments_xy
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        a0, u = rng.normal(0.0, 2.0, 3), rng.normal(0.0, 2.0, 3)
+        tau, h = float(rng.uniform(0.02, 0.4)), float(rng.uniform(0.0, 0.2))
+        dv, dp = lag_increments(a0, u, tau, h)
+        assert lag_increments_xy(a0[0], a0[1], u[0], u[1], tau, h) == (dv[0], dv[1], dp[0], dp[1])
+
+
 def test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command():
     # A step to 1 m/s^2 on x at t = 0.1 s, predicted at 0.2 s over 0.1 s: the acting acceleration has reached
     # 1 - exp(-0.1 / tau) and keeps relaxing; z is a held command over its own 20 ms.

@@ -9,7 +9,7 @@ import pytest
 
 from cfknode.app.config import TrajectoryConfig, load_config
 from cfknode.flight.trajectory import make_trajectory
-from cfknode.kernel.reference import RefSamples
+from cfknode.kernel.reference import RefSamples, sample_twice
 
 START = np.array([0.1, -0.2, 0.0])
 
@@ -178,6 +178,23 @@ def test_horizon_batches_match_single_samples(cfg):
     s = traj.sample(t)
     for k in range(4):
         np.testing.assert_allclose(s.p[k], traj.sample(t[k : k + 1]).p[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("cfg", KINDS, ids=lambda c: f"{c.kind}-ramp{c.ramp_duration}")
+def test_two_previews_in_one_sample_are_each_preview_s_own(cfg):
+    # The tick's preview and the one a command delay later, sampled in one call and split, as sampled apart:
+    # off the instants where a ramp-free pattern's speed jumps (there either side is right, and a batch that
+    # ends on one takes the side before it).
+    traj = make_trajectory(cfg, START)
+    for start in np.arange(-0.7, traj.duration + 0.3, 0.37) + 0.0011:
+        t, later = start + 0.05 * np.arange(21), start + 0.0677 + 0.05 * np.arange(21)
+        now, ahead = sample_twice(traj, t, later)
+        for got, want in ((now, traj.sample(t)), (ahead, traj.sample(later))):
+            np.testing.assert_array_equal(got.t, want.t)
+            for k in ("p", "v", "a", "yaw"):
+                np.testing.assert_allclose(getattr(got, k), getattr(want, k), atol=1e-12)
+    alone, none = sample_twice(traj, t, None)
+    assert none is None and np.array_equal(alone.p, traj.sample(t).p)
 
 
 def test_default_config_builds():
