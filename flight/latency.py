@@ -41,20 +41,12 @@ def held_increments(times: np.ndarray, accs: np.ndarray, a: float, b: float) -> 
     return h @ accs, (h * (b - 0.5 * (lo + hi))) @ accs
 
 
-def lag_increments(a0: np.ndarray, u: np.ndarray, tau: float, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """Over ``h`` s of an acceleration relaxing from ``a0`` toward the held ``u`` with time constant ``tau``:
-    the velocity gained and the position gained from rest (exact for the first-order lag)."""
-    k = -math.expm1(-h / tau)  # 1 - exp(-h / tau)
-    dv = u * h + (a0 - u) * (tau * k)
-    dp = u * (0.5 * h * h) + (a0 - u) * (tau * (h - tau * k))
-    return dv, dp
-
-
 def lag_increments_xy(ax: float, ay: float, ux: float, uy: float, tau: float,
                       h: float) -> tuple[float, float, float, float]:
-    """``lag_increments`` for x and y on Python floats, the same operations in the same order (every tick:
-    numpy's per-call cost on two numbers is most of the prediction's); returns dv_x, dv_y, dp_x, dp_y."""
-    k = -math.expm1(-h / tau)
+    """Over ``h`` s of an x/y acceleration relaxing from (ax, ay) toward the held (ux, uy) with time constant
+    ``tau``: the velocity and the position gained from rest (exact for the first-order lag), as dv_x, dv_y, dp_x,
+    dp_y. On Python floats: it runs every tick, and numpy's per-call cost on two numbers was most of its time."""
+    k = -math.expm1(-h / tau)  # 1 - exp(-h / tau)
     tk, c, e = tau * k, 0.5 * h * h, tau * (h - tau * k)
     return ux * h + (ax - ux) * tk, uy * h + (ay - uy) * tk, ux * c + (ax - ux) * e, uy * c + (ay - uy) * e
 
@@ -223,4 +215,4 @@ def _groups(delays: np.ndarray) -> list[tuple[float, np.ndarray]]:
     return [(float(d), np.flatnonzero(delays == d)) for d in np.unique(delays)]
 
 
-__all__ = ["CommandDelayPredictor", "held_increments", "lag_increments", "unexplained_acceleration"]
+__all__ = ["CommandDelayPredictor", "held_increments", "lag_increments_xy", "unexplained_acceleration"]

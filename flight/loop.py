@@ -330,7 +330,7 @@ class _Loop:
         (flight/latency.py); a reference the supervisor replaced (landing, fence) is flown as it is."""
         path, now = self.parts.estimator.command_path, tick.now
         plan_est, plan_ref = path.ahead(tick.est), tick.ref
-        if tick.ref is tick.samples and self.held is None:
+        if tick.ref is tick.samples and self.held is None and tick.samples_ahead is not None:
             plan_ref = tick.samples_ahead
             if path.delay_z != path.delay:  # z's reference over z's own delay (else its feed-forward acts early)
                 z = tick.samples if not path.delay_z else self.traj.sample(

@@ -160,36 +160,40 @@ def test_the_unexplained_acceleration_is_learned_and_predicted_with():
 
 
 def test_lag_increments_match_the_first_order_lag_exactly():
-    from cfknode.flight.latency import lag_increments
+    from cfknode.flight.latency import lag_increments_xy
 
     tau, h = 0.17, 0.1
-    a0, u = np.array([0.5, 0.0, 0.0]), np.array([1.5, -1.0, 0.0])
-    dv, dp = lag_increments(a0, u, tau, h)
+    a0, u = np.array([0.5, 0.0]), np.array([1.5, -1.0])
+    dvx, dvy, dpx, dpy = lag_increments_xy(*a0, *u, tau, h)
+    dv, dp = np.array([dvx, dvy]), np.array([dpx, dpy])
     # a(s) = u + (a0 - u) exp(-s / tau): integrated once and twice in closed form.
     e = math.exp(-h / tau)
     np.testing.assert_allclose(dv, u * h + (a0 - u) * tau * (1.0 - e), atol=1e-15)
     np.testing.assert_allclose(dp, u * h * h / 2 + (a0 - u) * (tau * h - tau * tau * (1.0 - e)), atol=1e-15)
     # A settled lag flies the command: the plain kinematics.
-    dv, dp = lag_increments(u, u, tau, h)
-    np.testing.assert_allclose(dv, u * h, atol=1e-15)
-    np.testing.assert_allclose(dp, 0.5 * u * h * h, atol=1e-15)
+    dvx, dvy, dpx, dpy = lag_increments_xy(*u, *u, tau, h)
+    np.testing.assert_allclose([dvx, dvy], u * h, atol=1e-15)
+    np.testing.assert_allclose([dpx, dpy], 0.5 * u * h * h, atol=1e-15)
 
 
 def test_the_lag_s_float_twin_is_the_array_function_to_the_bit():
-    from cfknode.flight.latency import lag_increments, lag_increments_xy
+    # The floats do numpy's element-wise arithmetic in its order: the predictor's flights stayed the same to the bit.
+    from cfknode.flight.latency import lag_increments_xy
 
     rng = np.random.default_rng(5)
     for _ in range(200):
         a0, u = rng.normal(0.0, 2.0, 3), rng.normal(0.0, 2.0, 3)
         tau, h = float(rng.uniform(0.02, 0.4)), float(rng.uniform(0.0, 0.2))
-        dv, dp = lag_increments(a0, u, tau, h)
+        k = -math.expm1(-h / tau)
+        dv = u * h + (a0 - u) * (tau * k)
+        dp = u * (0.5 * h * h) + (a0 - u) * (tau * (h - tau * k))
         assert lag_increments_xy(a0[0], a0[1], u[0], u[1], tau, h) == (dv[0], dv[1], dp[0], dp[1])
 
 
 def test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command():
     # A step to 1 m/s^2 on x at t = 0.1 s, predicted at 0.2 s over 0.1 s: the acting acceleration has reached
     # 1 - exp(-0.1 / tau) and keeps relaxing; z is a held command over its own 20 ms.
-    from cfknode.flight.latency import lag_increments
+    from cfknode.flight.latency import lag_increments_xy
 
     tau, d, dz = 0.17, 0.1, 0.02
     pred = CommandDelayPredictor(d, delay_z=dz, lag=tau)
@@ -199,9 +203,9 @@ def test_with_a_lag_the_horizontal_prediction_relaxes_toward_the_newest_command(
     out = pred.ahead(_est(0.2, v=(0.0, 0.0, 0.0)))
     acting = np.array([-math.expm1(-(0.195 - 0.1) / tau), 0.0, 0.0])  # the last note (0.195 s) held to 0.2 s
     acting = np.array([1.0, 0.0, 0.0]) + (acting - [1.0, 0.0, 0.0]) * math.exp(-0.005 / tau)
-    dv, dp = lag_increments(acting, np.array([1.0, 0.0, 2.0]), tau, d)
-    np.testing.assert_allclose(out.v[:2], dv[:2], atol=1e-12)
-    np.testing.assert_allclose(out.p[:2], dp[:2], atol=1e-12)
+    dvx, dvy, dpx, dpy = lag_increments_xy(acting[0], acting[1], 1.0, 0.0, tau, d)
+    np.testing.assert_allclose(out.v[:2], [dvx, dvy], atol=1e-12)
+    np.testing.assert_allclose(out.p[:2], [dpx, dpy], atol=1e-12)
     assert out.v[2] == pytest.approx(2.0 * dz) and out.p[2] == pytest.approx(1.0 + dz * dz)
 
 

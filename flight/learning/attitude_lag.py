@@ -134,8 +134,7 @@ class AttitudeLagIdentifier:
             self._n = 0
             return
         acc = np.asarray(tick.acc, dtype=float)
-        layer = getattr(tick, "layer", None)
-        self._offset = None if layer is None else layer.offset
+        self._offset = None if tick.layer is None else tick.layer.offset
         i = self._n
         self._t[i] = tick.t
         thrust = math.sqrt(acc[0] ** 2 + acc[1] ** 2 + (acc[2] + self._g) ** 2)
