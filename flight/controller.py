@@ -106,6 +106,7 @@ class TickInfo:
     # not train on the layer's own transients (a step being tracked, a mass still being learned).
     layer: AdaptationEstimate | None = None
     guarded: bool = False  # the fall guard flew it: the thrust dropped under the flying model (the learner drops it)
+    skipped: int = 0  # slots the loop passed over before this tick (wall clock): deadlines missed with no command
 
 
 class TickObserver(Protocol):

@@ -16,13 +16,14 @@ import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 
 from cfknode.flight.controller import Controller, TickInfo, TickObserver
 from cfknode.flight.estimator import StateEstimate, VelocityEstimator
 from cfknode.flight.tick_guard import GuardedLog, GuardedObserver, fallback_command, hold_reference
+from cfknode.flight.tick_log import Log, TickLogged, log_tick
 from cfknode.kernel.clock import Clock
 from cfknode.kernel.imu import ImuSource
 from cfknode.kernel.reference import RefSamples, Reference, sample_twice
@@ -32,10 +33,6 @@ from cfknode.safety.operator import EstopMailbox, estop_watch, stop_signal_handl
 from cfknode.safety.supervisor import BLIND, ERROR_LAND, ERROR_RECORD, ERROR_STOP, FLY, MOTORS_OFF, Supervisor
 
 __all__ = ["FlightParts", "FlightRecord", "Log", "TickInfo", "TickObserver", "fly"]
-
-
-class Log(Protocol):
-    def write(self, topic: str, t: float, msg: dict[str, Any]) -> None: ...
 
 
 @dataclass
@@ -63,8 +60,9 @@ class FlightRecord:
     p_ref: np.ndarray
     compute_s: np.ndarray
     solve_s: np.ndarray
-    missed: np.ndarray
+    missed: np.ndarray  # the tick's command was sent after its slot ended
     mpc_ok: np.ndarray
+    skipped: np.ndarray  # slots passed over before the tick (wall clock): each a deadline missed with no command
     ticks: int = 0
     fallbacks: int = 0
     fallback_reasons: dict[str, int] = field(default_factory=dict)  # MPC status -> ticks
@@ -77,13 +75,14 @@ class FlightRecord:
     @classmethod
     def empty(cls, n: int) -> "FlightRecord":
         return cls(t=np.zeros(n), p=np.zeros((n, 3)), p_ref=np.zeros((n, 3)), compute_s=np.zeros(n),
-                   solve_s=np.zeros(n), missed=np.zeros(n, dtype=bool), mpc_ok=np.zeros(n, dtype=bool))
+                   solve_s=np.zeros(n), missed=np.zeros(n, dtype=bool), mpc_ok=np.zeros(n, dtype=bool),
+                   skipped=np.zeros(n, dtype=int))
 
     def trimmed(self) -> "FlightRecord":
         n = self.ticks
         return FlightRecord(
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
-            solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], ticks=n,
+            solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], skipped=self.skipped[:n], ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
             wall_time=self.wall_time, loop_cpu_s=self.loop_cpu_s, events=self.events, adaptation=self.adaptation,
         )
@@ -93,7 +92,7 @@ class FlightRecord:
         n = len(self.t)
         if self.ticks < n:
             return
-        for name in ("t", "p", "p_ref", "compute_s", "solve_s", "missed", "mpc_ok"):
+        for name in ("t", "p", "p_ref", "compute_s", "solve_s", "missed", "mpc_ok", "skipped"):
             old = getattr(self, name)
             new = np.zeros((2 * n, *old.shape[1:]), dtype=old.dtype)
             new[:n] = old
@@ -141,6 +140,7 @@ class _Tick:
 
     now: float
     t_tick: float
+    skipped: int = 0  # slots passed over since the last tick (wall clock)
     start: float = 0.0  # perf_counter when the tick's compute began (after the IMU read)
     pose: Any = None
     fresh: bool = False
@@ -177,6 +177,7 @@ class _Loop:
         self.wall_start = time.perf_counter()
         self.cpu_start = time.thread_time()
         self.k = 0
+        self.skipped = 0  # slots passed over since the last tick (wall clock)
         self.log = parts.log if isinstance(parts.log, GuardedLog) else GuardedLog(parts.log)
         self.log.report_to(self.detached)
         self.observers = [GuardedObserver(o, self.detached) for o in parts.observers]
@@ -207,15 +208,18 @@ class _Loop:
             now = self.parts.clock.now()
         except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
             self.halt("the clock (the simulator in lockstep)", exc)
-        tick = _Tick(now, t_tick)
+        tick = _Tick(now, t_tick, self.skipped)
         self.read(tick)
         self.plan(tick)
         self.act(tick)
         self.record(tick)
         self.k += 1
         if not self.parts.clock.lockstep:
-            # On a wall clock a late tick is skipped, not queued: the next tick is the next slot ahead.
-            self.k = max(self.k, int(self.parts.clock.now() / self.period) + 1)
+            # On a wall clock ticks are never queued: a tick that ran into the next slot starts that slot's tick
+            # late, inside its deadline; a slot already gone is passed over, a deadline missed (the next tick
+            # records it).
+            slot = max(self.k, int(self.parts.clock.now() / self.period))
+            self.skipped, self.k = slot - self.k, slot
 
     def read(self, tick: _Tick) -> None:
         """The IMU, the pose and the state estimate; starts the tick's timer."""
@@ -360,12 +364,13 @@ class _Loop:
         i = rec.ticks
         rec.t[i], rec.p[i], rec.p_ref[i] = now, p_now, tick.ref.p[0]
         rec.compute_s[i], rec.solve_s[i], rec.missed[i], rec.mpc_ok[i] = tick.compute, tick.solve_s, tick.missed, tick.ok
+        rec.skipped[i] = tick.skipped
         rec.ticks += 1
         try:
-            _log_tick(self.log, TickLogged(
+            log_tick(self.log, TickLogged(
                 now, est, truth, tick.ref, tick.sp, self.acc_prev, tick.source, tick.compute, tick.solve_s,
                 tick.missed, tick.ok, tick.status if tick.source == "fallback" else "", tick.fresh,
-                sup.state.value, self.logs_imu))
+                sup.state.value, self.logs_imu, tick.skipped))
         except Exception as exc:  # noqa: BLE001 - building the messages, not writing them
             self.fault("the flight log (tick messages)", exc, ERROR_RECORD)
         if tick.adapted:
@@ -392,7 +397,8 @@ class _Loop:
             ref = tick.ref
             info = TickInfo(tick.now, tick.est, ref.p[0], ref.v[0], self.acc_prev, tick.sp, tick.source,
                             tick.compute, tick.solve_s, tick.missed, version, sup.state.value,
-                            flown is not None and flown.saturated, guarded=flown is not None and flown.guarded)
+                            flown is not None and flown.saturated, guarded=flown is not None and flown.guarded,
+                            skipped=tick.skipped)
             for observer in self.observers:
                 observer.on_tick(info)
         if tick.action is FLY and not self.controller_failed:
@@ -412,68 +418,8 @@ class _Loop:
         return rec.trimmed()
 
 
-_NAN = float("nan")
-_NAN3 = np.full(3, np.nan)
-_NAN3.flags.writeable = False
-
-
 def _with_z(xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     """``xy`` (n, 3) with the vertical column of ``z``."""
     out = np.array(xy, dtype=float)
     out[:, 2] = z[:, 2]
     return out
-
-
-@dataclass(frozen=True)
-class TickLogged:
-    """What one tick writes to the log's /state, /reference, /command and /tick topics."""
-
-    now: float
-    est: StateEstimate | None
-    truth: np.ndarray | None
-    ref: Any
-    sp: AttitudeSetpoint
-    acc: np.ndarray
-    source: str
-    compute: float
-    solve_s: float
-    missed: bool
-    ok: bool
-    status: str = ""  # why the MPC was not used (fallback ticks only)
-    fresh: bool = True
-    phase: str = ""
-    logs_imu: bool = False
-
-
-def _log_tick(log: Log, t: TickLogged) -> None:
-    now, est, truth, ref, sp = t.now, t.est, t.truth, t.ref, t.sp
-    if est is not None:
-        # fresh, phase and the newest frame are what the fast layer read this tick: replay feeds them back.
-        state: dict[str, Any] = {"p": est.p, "v": est.v, "q": est.q, "fresh": bool(t.fresh), "phase": t.phase}
-        if est.frame is not None:
-            state["frame_t"], state["frame_p"] = est.frame
-        if t.logs_imu:
-            imu = est.imu
-            state["imu_t"] = imu.t if imu is not None else _NAN
-            state["imu_f"] = imu.specific_force if imu is not None else _NAN3
-        if truth is not None:
-            state["p_true"] = truth[:3]
-            state["v_true"] = truth[3:6]
-        log.write("/state", now, state)
-    log.write("/reference", now, {"p": ref.p[0], "v": ref.v[0], "a": ref.a[0], "yaw": float(ref.yaw[0])})
-    log.write(
-        "/command",
-        now,
-        {
-            "acc": t.acc,
-            "roll_deg": sp.roll_deg,
-            "pitch_deg": sp.pitch_deg,
-            "yawrate_deg": sp.yawrate_deg,
-            "thrust": sp.thrust,
-            "source": t.source,
-        },
-    )
-    tick: dict[str, Any] = {"compute_s": t.compute, "solve_s": t.solve_s, "missed": t.missed, "mpc_ok": t.ok}
-    if t.status:
-        tick["status"] = t.status  # why the MPC was not used (fallback ticks only)
-    log.write("/tick", now, tick)

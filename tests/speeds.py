@@ -483,6 +483,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_a_finite_but_absurd_model_is_refused_before_take_off": FLIES,
         "test_a_damaged_first_metadata_record_is_one_line_or_read_around": FLIES,
     },
+    "test_deadlines.py": {"*": FAST, "test_a_loop_that_runs_over_its_slot_records_the_slots_it_passed_over": FLIES},
     "test_docs_paths.py": FAST,
     "test_estop_mailbox_hostile.py": {
         "*": FAST,

@@ -16,10 +16,11 @@ from cfknode.app.ui.status import (
 )
 
 
-def _tick(t, compute_s=2e-4, solve_s=1e-4, missed=False, source="mpc", p=(0.0, 0.0, 1.0), ref=(0.0, 0.0, 1.0)):
+def _tick(t, compute_s=2e-4, solve_s=1e-4, missed=False, source="mpc", p=(0.0, 0.0, 1.0), ref=(0.0, 0.0, 1.0),
+          skipped=0):
     est = None if p is None else SimpleNamespace(p=np.asarray(p, dtype=float))
     return SimpleNamespace(t=t, est=est, ref_p=np.asarray(ref, dtype=float), compute_s=compute_s, solve_s=solve_s,
-                           missed=missed, source=source, model_version=0)
+                           missed=missed, source=source, model_version=0, skipped=skipped)
 
 
 class RecordingLog:
@@ -71,6 +72,14 @@ def test_on_tick_counts_missed_and_fallback_ticks_and_keeps_the_newest_state():
     assert (status.ticks, status.missed_deadlines, status.fallbacks) == (3, 1, 2)
     assert status.t == 0.0050 and status.command_source == "fallback"
     np.testing.assert_allclose(status.error(), [0.0, -0.01, 0.1])
+
+
+def test_slots_passed_over_count_as_missed_deadlines():
+    status = FlightStatus()
+    status.on_tick(_tick(0.0025))
+    status.on_tick(_tick(0.0100, skipped=2))  # two slots had no tick at all
+    status.on_tick(_tick(0.0125, missed=True))
+    assert (status.ticks, status.missed_deadlines) == (3, 3)
 
 
 def test_tap_passes_messages_through_and_reads_supervisor_and_model_channels():

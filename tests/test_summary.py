@@ -42,7 +42,8 @@ def flight(n: int = 4001, offset=(0.1, -0.2, 0.3), **kwargs) -> FlightSummary:
         window=(2.0, 8.0), wall_time=2.5, log_path="x.mcap",
     )
     args.update(kwargs)
-    ticks = TickSeries(**{k: args.pop(k) for k in ("t", "p", "p_ref", "compute_s", "solve_s", "missed")})
+    ticks = TickSeries(**{k: args.pop(k) for k in ("t", "p", "p_ref", "compute_s", "solve_s", "missed", "skipped")
+                          if k in args})
     return compute_summary(ticks, **args)
 
 
@@ -108,6 +109,18 @@ def test_timing_percentiles() -> None:
     assert s.compute_max_ms == pytest.approx(100.0)
     assert s.solve_median_ms == pytest.approx(50.5)  # the 0 ms tick ran no solve
     assert s.missed_deadlines == 5 and s.ticks == 101  # 96..100 ms
+
+
+def test_slots_passed_over_are_missed_deadlines_beside_the_late_ticks() -> None:
+    n = 101
+    missed, skipped = np.zeros(n, dtype=bool), np.zeros(n, dtype=int)
+    missed[[10, 50]] = True
+    skipped[[11, 51, 80]] = [1, 2, 1]  # after each late tick, and once after a tick on time whose bookkeeping ran over
+    s = flight(n=n, missed=missed, skipped=skipped, window=(0.0, 1.0))
+    assert (s.ticks, s.skipped_slots, s.missed_deadlines) == (101, 4, 6)
+    assert flight(n=n, window=(0.0, 1.0)).skipped_slots == 0  # lockstep: no record of any
+    with pytest.raises(ValueError, match="skipped"):
+        flight(n=n, skipped=np.zeros(n - 1, dtype=int))
 
 
 def test_p99_is_linear_interpolation_of_order_statistics() -> None:

@@ -9,7 +9,7 @@ Mission wiring (``run_flight``) uses it in three lines::
             controller = Controller(cfg.controller, cfg.vehicle, model=model)
             controller.observers.extend([online] if online else [])
             parts = FlightParts(..., controller=controller)
-            record = asyncio.run(fly(parts))
+            record = run_loop(fly(parts))
             extra.update(online.summary_fields() if online else {})
 
 ``start_trainer`` exists because a wall clock starts running when the backend is built: a

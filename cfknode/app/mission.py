@@ -8,7 +8,6 @@ around the simulator's parts, and nowhere in the flight path.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import contextlib
 import dataclasses
@@ -26,6 +25,7 @@ from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.stall_exit import LoopProgress, stall_exit
 from cfknode.flight.loop import FlightParts, FlightRecord, TickObserver, fly
+from cfknode.kernel.clock import run_loop
 from cfknode.flight.model_slot import ModelSlot
 from cfknode.flight.mpc import TranslationalMpc
 from cfknode.app.backends.base import Backend
@@ -328,7 +328,7 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
             if status is not None:
                 flight = _with_dashboard(flight, status, dashboard, sess, supervisor, cfg)
             with stall_exit([sess.radio], flight_log, progress):  # a loop that never returns ends the process
-                record = asyncio.run(flight)
+                record = run_loop(flight)
             after = hand_back(sess.radio.shutdown, sess.after_handback,
                               lambda part, exc: supervisor.internal_error(part, exc, ERROR_RECORD))
             outcome = supervisor.outcome()

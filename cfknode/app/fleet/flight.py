@@ -56,6 +56,7 @@ from cfknode.flight.estimator import VelocityEstimator
 from cfknode.flight.formation import HoldableReference, fleet_references
 from cfknode.flight.loop import FlightParts, FlightRecord, fly
 from cfknode.flight.neighbours import NeighbourBoard
+from cfknode.kernel.clock import run_loop
 from cfknode.kernel.setpoint import thrust_command
 from cfknode.safety.estop_mailbox import EstopMailbox, MailboxError, mailbox_dir
 from cfknode.safety.geofence import Geofence, clamp_reference
@@ -355,7 +356,7 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
     for p in parts:
         p.observers.insert(0, progress)
     with stall_exit([d.radio for d in drones], flog, progress):  # a loop that never returns ends the process
-        records = asyncio.run(_gather(drones, parts, coordinator))
+        records = run_loop(_gather(drones, parts, coordinator))
     after = handback()
     results = []
     for name, d, rec, sup, ref, learner, extra in zip(names, drones, records, sups, refs, learners, after):

@@ -126,7 +126,8 @@ CHANNELS: tuple[ChannelSpec, ...] = (
         "/tick", "cfknode.Tick", "Timing of one control tick.",
         {"compute_s": _num("tick compute time, wall s"), "solve_s": _num("MPC solve time, wall s"),
          "missed": _bool("the tick missed its deadline"), "mpc_ok": _bool("the MPC solution was used")},
-        {"status": _str("solver status")},
+        {"status": _str("solver status"),
+         "skipped": _num("slots the loop passed over before this tick (wall clock), each a missed deadline")},
     ),
     ChannelSpec(
         "/mocap", "cfknode.Mocap", "Motion-capture frame handed to the estimator.",

@@ -179,6 +179,7 @@ class FlightStatus:
         est = tick.est
         self.record_tick(tick.t, time.perf_counter(), tick.compute_s, tick.solve_s, tick.missed, tick.source,
                          _NAN3 if est is None else est.p, tick.ref_p)
+        self.missed_deadlines += tick.skipped  # the slots passed over before it: missed, with no command at all
         self.model_version = tick.model_version
         self.layer = getattr(tick, "layer", None)
 

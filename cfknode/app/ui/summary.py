@@ -70,7 +70,7 @@ class FlightSummary:
     flight_rms_error: float
     flight_max_error: float
     ticks: int
-    missed_deadlines: int
+    missed_deadlines: int  # slots whose command was late (a tick over its slot) or never sent (a slot passed over)
     compute_median_ms: float
     compute_p99_ms: float
     compute_max_ms: float
@@ -80,6 +80,7 @@ class FlightSummary:
     wall_time_s: float
     speed_factor: float  # simulated seconds per wall second
     log_path: str | None
+    skipped_slots: int = 0  # wall clock: slots the loop passed over (counted in missed_deadlines; none in lockstep)
     extra: dict[str, Any] = field(default_factory=dict)
     # Per mass step (simulation): {"t", "factor", "time_to_recover_s" (None: never), "peak_error_m"}; see recovery.py
     recovery: tuple[dict[str, Any], ...] = ()
@@ -122,6 +123,7 @@ class TickSeries:
     compute_s: np.ndarray
     solve_s: np.ndarray
     missed: np.ndarray
+    skipped: np.ndarray | None = None  # slots passed over before each tick (wall clock); None: none
 
 
 def compute_summary(
@@ -138,8 +140,8 @@ def compute_summary(
     """Summarise a flight from per-tick arrays (pure).
 
     ``ticks``: a ``TickSeries`` or a ``FlightRecord``. ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
-    ``compute_s``, ``solve_s`` and ``missed`` are per tick (any common length; a NaN or zero
-    solve time means no solve ran that tick). ``window`` selects t0 <= t <= t1 for the
+    ``compute_s``, ``solve_s``, ``missed`` and ``skipped`` are per tick (any common length; a NaN or zero
+    solve time means no solve ran that tick); a deadline is missed by a late tick and by each slot passed over. ``window`` selects t0 <= t <= t1 for the
     pattern metrics. ``duration`` defaults to the span of ``t``. ``steps``: (time, mass factor) of
     the simulator's mass changes; each gets its time to recover and peak error, judged until the
     next step or ``recovery_margin_s`` before the pattern's end (an MPC brakes for the pattern's
@@ -155,6 +157,9 @@ def compute_summary(
     missed = np.asarray(ticks.missed, dtype=bool).reshape(-1)
     if len(missed) != len(compute_s):
         raise ValueError(f"missed ({len(missed)}) and compute_s ({len(compute_s)}) must have the same length")
+    skipped = np.zeros(len(missed), dtype=int) if ticks.skipped is None else np.asarray(ticks.skipped).reshape(-1)
+    if len(skipped) != len(missed):
+        raise ValueError(f"skipped ({len(skipped)}) and missed ({len(missed)}) must have the same length")
     t0, t1 = float(window[0]), float(window[1])
     if t1 < t0:
         raise ValueError(f"window end {t1} is before its start {t0}")
@@ -185,7 +190,7 @@ def compute_summary(
         flight_rms_error=whole.rms,
         flight_max_error=whole.max,
         ticks=len(compute_s),
-        missed_deadlines=int(missed.sum()),
+        missed_deadlines=int(missed.sum() + skipped.sum()),
         compute_median_ms=_percentile(compute_ms, 50),
         compute_p99_ms=_percentile(compute_ms, 99),
         compute_max_ms=float(compute_ms.max()) if len(compute_ms) else math.nan,
@@ -195,6 +200,7 @@ def compute_summary(
         wall_time_s=float(wall_time),
         speed_factor=float(duration) / wall_time if wall_time > 0 else math.nan,
         log_path=log_path,
+        skipped_slots=int(skipped.sum()),
         extra=dict(extra or {}),
         recovery=recoveries,
     )
@@ -237,6 +243,7 @@ def summary_from_log(
             compute_s=log.array("/tick", "compute_s") if ticks else np.zeros(0),
             solve_s=log.array("/tick", "solve_s") if ticks else np.zeros(0),
             missed=log.array("/tick", "missed") if ticks else np.zeros(0, dtype=bool),
+            skipped=np.array([m.get("skipped", 0) for m in ticks], dtype=int),
         ),
         window=window,
         wall_time=wall_time,
@@ -300,8 +307,10 @@ def render_summary(summary: FlightSummary, console: Console) -> None:
             table.add_row(f"{r['factor']:g}x at {r['t']:.2f} s: time to recover / peak error",
                           f"{'never' if ttr is None else f'{ttr:.2f}'} / {_g(r.get('peak_error_m'))}", "s / m")
     table.add_section()
-    missed = f"{s.missed_deadlines} / {s.ticks}"
-    table.add_row("missed deadlines / ticks", f"[red]{missed}[/]" if s.missed_deadlines else missed, "")
+    missed = f"{s.missed_deadlines} / {s.ticks + s.skipped_slots}"
+    if s.skipped_slots:
+        missed += f" ({s.skipped_slots} passed over)"
+    table.add_row("missed deadlines / slots", f"[red]{missed}[/]" if s.missed_deadlines else missed, "")
     table.add_row("tick compute median / p99 / max",
                   " / ".join(_ms(v) for v in (s.compute_median_ms, s.compute_p99_ms, s.compute_max_ms)), "ms")
     table.add_row("MPC solve median / p99", f"{_ms(s.solve_median_ms)} / {_ms(s.solve_p99_ms)}", "ms")
