@@ -213,13 +213,15 @@ class _Loop:
         self.plan(tick)
         self.act(tick)
         self.record(tick)
-        self.k += 1
-        if not self.parts.clock.lockstep:
-            # On a wall clock ticks are never queued: a tick that ran into the next slot starts that slot's tick
-            # late, inside its deadline; a slot already gone is passed over, a deadline missed (the next tick
-            # records it).
-            slot = max(self.k, int(self.parts.clock.now() / self.period))
-            self.skipped, self.k = slot - self.k, slot
+        if self.parts.clock.lockstep:
+            self.k += 1
+        else:
+            # On a wall clock ticks are never queued and a slot has one tick at most: a tick that ran into the
+            # next slot starts that slot's tick late, inside its deadline; a slot already gone, or the one a
+            # tick that woke late ran in, is passed over, a deadline missed (the next tick records it).
+            started = max(self.k, int(now / self.period))
+            slot = max(started + 1, int(self.parts.clock.now() / self.period))
+            self.skipped, self.k = slot - self.k - 1, slot
 
     def read(self, tick: _Tick) -> None:
         """The IMU, the pose and the state estimate; starts the tick's timer."""

@@ -50,13 +50,15 @@ class _Wall:
 
     lockstep = False
 
-    def __init__(self, inner: Any) -> None:
-        self._inner = inner
+    def __init__(self, inner: Any, late_wake: tuple[float, float] = (float("inf"), 0.0)) -> None:
+        self._inner, self._late_wake = inner, late_wake  # (flight time, seconds): one sleep that ends late
 
     def now(self) -> float:
         return self._inner.now()
 
     async def sleep_until(self, t: float) -> None:
+        if t >= self._late_wake[0]:
+            t, self._late_wake = t + self._late_wake[1], (float("inf"), 0.0)
         await self._inner.sleep_until(t)
 
 
@@ -82,12 +84,14 @@ def test_a_loop_that_runs_over_its_slot_records_the_slots_it_passed_over(tmp_pat
     cfg = load_config(overrides={
         "log.dir": str(tmp_path), "trajectory.kind": "hover", "trajectory.duration": 1.0,
         "trajectory.takeoff_duration": 1.0, "trajectory.settle_duration": 0.2, "trajectory.land_duration": 1.0})
-    # Two ticks run 6 ms over (the next slot's whole window passes), one 3 ms (into the next slot, not past it).
+    # Two ticks run 6 ms over (the next slot's whole window passes), one 3 ms (into the next slot, not past it),
+    # and one tick wakes 3 ms late, in the slot after its own.
     overrun = _Overrun(cfg.radio.uri, ((1.0, 0.006), (1.5, 0.003), (2.0, 0.006)))
     parts_of = mission.FlightParts
 
     def with_wall_clock(**kw: Any) -> Any:
-        return parts_of(**{**kw, "clock": _Wall(kw["clock"]), "observers": [*kw.get("observers", []), overrun]})
+        return parts_of(**{**kw, "clock": _Wall(kw["clock"], (2.5, 0.003)),
+                           "observers": [*kw.get("observers", []), overrun]})
 
     monkeypatch.setattr(mission, "FlightParts", with_wall_clock)
     res = mission.run_flight(cfg, name_hint="overrun")
@@ -99,10 +103,16 @@ def test_a_loop_that_runs_over_its_slot_records_the_slots_it_passed_over(tmp_pat
     # Into the next slot only: that slot's tick starts at once, late but inside its deadline.
     assert list(rec.skipped[i]) == [1, 0, 1] and list(slots) == [2, 1, 2]
     assert all(rec.t[i] - rec.t[i - 1] > slots * PERIOD)  # each started after its slot began
-    assert s.skipped_slots == 2 and int(rec.skipped.sum()) == 2
-    assert s.missed_deadlines == 2 + int(rec.missed.sum())
+    # The tick that woke in the next slot missed its deadline, and that slot counts as passed over: a slot
+    # has one tick at most, so the next tick waits for its own slot.
+    woke = int(np.searchsorted(rec.t, 2.5))
+    assert rec.missed[woke] and rec.skipped[woke + 1] == 1
+    assert np.floor(rec.t[woke + 1] / PERIOD + 1e-9) == np.floor(rec.t[woke] / PERIOD + 1e-9) + 1
+    assert np.all(np.diff(np.floor(rec.t / PERIOD + 1e-9)) >= 1)
+    assert s.skipped_slots == 3 and int(rec.skipped.sum()) == 3
+    assert s.missed_deadlines == 3 + int(rec.missed.sum())
     # The log records them on the tick after, and a summary recomputed from it counts the same.
     ticks = read_log(s.log_path).topic("/tick")
-    assert sum(m.get("skipped", 0) for m in ticks) == 2
+    assert sum(m.get("skipped", 0) for m in ticks) == 3
     again = summary_from_log(read_log(s.log_path))
-    assert (again.skipped_slots, again.missed_deadlines) == (2, s.missed_deadlines)
+    assert (again.skipped_slots, again.missed_deadlines) == (3, s.missed_deadlines)
