@@ -82,7 +82,8 @@ class FlightRecord:
         n = self.ticks
         return FlightRecord(
             t=self.t[:n], p=self.p[:n], p_ref=self.p_ref[:n], compute_s=self.compute_s[:n],
-            solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], skipped=self.skipped[:n], ticks=n,
+            solve_s=self.solve_s[:n], missed=self.missed[:n], mpc_ok=self.mpc_ok[:n], skipped=self.skipped[:n],
+            ticks=n,
             fallbacks=self.fallbacks, fallback_reasons=self.fallback_reasons, no_state_ticks=self.no_state_ticks,
             wall_time=self.wall_time, loop_cpu_s=self.loop_cpu_s, events=self.events, adaptation=self.adaptation,
         )
