@@ -209,6 +209,10 @@ class _Loop:
             now = self.parts.clock.now()
         except Exception as exc:  # noqa: BLE001 - time no longer advances: stop and leave
             self.halt("the clock (the simulator in lockstep)", exc)
+        if self.rec.ticks == 0 and not self.parts.clock.lockstep:
+            # A wall clock runs from before the loop starts: the first tick takes the slot it woke in.
+            self.k = max(self.k, int(now / self.period))
+            t_tick = self.k * self.period
         tick = _Tick(now, t_tick, self.skipped)
         self.read(tick)
         self.plan(tick)
