@@ -119,6 +119,7 @@ def test_slots_passed_over_are_missed_deadlines_beside_the_late_ticks() -> None:
     s = flight(n=n, missed=missed, skipped=skipped, window=(0.0, 1.0))
     assert (s.ticks, s.skipped_slots, s.missed_deadlines) == (101, 4, 6)
     assert flight(n=n, window=(0.0, 1.0)).skipped_slots == 0  # lockstep: no record of any
+    assert "6 of 105 deadlines" in "\n".join(brief_rows(s))  # of the slots: the ticks and those passed over
     with pytest.raises(ValueError, match="skipped"):
         flight(n=n, skipped=np.zeros(n - 1, dtype=int))
 

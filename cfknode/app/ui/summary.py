@@ -336,7 +336,7 @@ def brief_rows(summary: FlightSummary) -> list[str]:
     rows = [f"Flight summary (pattern {t0:.1f}-{t1:.1f} s)",
             _row("tracking", f"MSE {_e(s.mse)} m^2, max error {_mm(s.max_error)}"),
             _row("tick compute", f"median {_ms(s.compute_median_ms)} ms, p99 {_ms(s.compute_p99_ms)} ms"),
-            _row("missed", f"{s.missed_deadlines} of {s.ticks} deadlines"),
+            _row("missed", f"{s.missed_deadlines} of {s.ticks + s.skipped_slots} deadlines"),
             _row("speed", f"{_g(s.speed_factor, 3)}x real time" + (", lockstep" if x.get("lockstep") else ""))]
     if "models_accepted" in x:
         rows.append(_row("models", f"{x['models_accepted']} accepted of {x.get('models_trained', '?')} trained"))
