@@ -142,10 +142,10 @@ def compute_summary(
     ``ticks``: a ``TickSeries`` or a ``FlightRecord``. ``t`` (n,), ``p`` (n, 3) true position in simulation or the estimate, ``p_ref`` (n, 3).
     ``compute_s``, ``solve_s``, ``missed`` and ``skipped`` are per tick (any common length; a NaN or zero
     solve time means no solve ran that tick); a deadline is missed by a late tick and by each slot passed
-    over. ``window`` selects t0 <= t <= t1 for the pattern metrics. ``duration`` defaults to the span of ``t``. ``steps``: (time, mass factor) of
-    the simulator's mass changes; each gets its time to recover and peak error, judged until the
-    next step or ``recovery_margin_s`` before the pattern's end (an MPC brakes for the pattern's
-    end one preview horizon early, which is not the step's doing).
+    over. ``window`` selects t0 <= t <= t1 for the pattern metrics. ``duration`` defaults to the span of
+    ``t``. ``steps``: (time, mass factor) of the simulator's mass changes; each gets its time to recover
+    and peak error, judged until the next step or ``recovery_margin_s`` before the pattern's end (an MPC
+    brakes for the pattern's end one preview horizon early, which is not the step's doing).
     """
     t = np.asarray(ticks.t, dtype=float).reshape(-1)
     p = np.asarray(ticks.p, dtype=float).reshape(-1, 3)
