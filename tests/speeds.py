@@ -546,6 +546,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": FAST,
         "test_crossing_under_a_hovering_drone_the_layer_takes_no_pass_for_a_heavier_vehicle": FLIES,
     },
+    "test_wake_below.py": FAST,
     "test_wake_only.py": {
         "*": FAST,
         "test_on_the_crossing_the_learned_wake_flies_below_the_layer_alone": BOTH,

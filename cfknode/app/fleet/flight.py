@@ -15,8 +15,9 @@ drone's supervisor lands or stops it. One MCAP log holds every drone's channels 
 (``/cf1/state``); each drone has its own e-stop mailbox entry (``sim-cf1``), and ``cfknode estop
 --all`` reaches them all. Stop signals (SIGINT, SIGTERM, SIGHUP) go to every drone's supervisor
 through ``FleetCoordinator.interrupt``: the first lands them all, a second stops them all.
-With ``--online`` every drone learns as a single flight does, its rounds on one shared trainer
-process (cfknode/app/fleet/learning.py).
+With ``--online`` every drone learns as a single flight does, its rounds on a trainer process shared
+with the drones whose rounds train alike (cfknode/app/fleet/learning.py); which drones learn the wake of
+the one above alone is chosen from the references (cfknode/app/fleet/wake_below.py).
 
 A fleet of real robots (``--robots cf1,cf2``: cfknode/app/fleet/robots.py) shares all of this:
 ``preflight``, ``FleetCoordinator``, the channels and ``fly_drones``, which flies any drones
@@ -40,6 +41,7 @@ from cfknode.app.config import Config, ConfigError
 from cfknode.app.fleet.coordinator import FleetCoordinator
 from cfknode.app.fleet.landing_order import StallHold
 from cfknode.app.fleet.learning import fleet_sessions, fleet_trainers
+from cfknode.app.fleet.wake_below import wake_below_configs
 from cfknode.app.flight_checks import refuse_unflyable
 from cfknode.app.foxglove.view import Drawing, FoxgloveView, McapSink, reference_points
 from cfknode.app.learning import attitude_lag_identifier, check_online, keep_learned_model, online_model_slot
@@ -133,7 +135,7 @@ def drone_configs(cfg: Config) -> tuple[list[str], list[Config], list[HoldableRe
             radio=dataclasses.replace(cfg.radio, uri=f"sim://{base + i}"),
         ))
         refs.append(HoldableReference(ref))
-    return names, configs, refs
+    return names, wake_below_configs(cfg, configs, [r.inner for r in refs]), refs
 
 
 def preflight(cfg: Config, names: Sequence[str], configs: Sequence[Config], refs: Sequence[Any]) -> dict[str, float]:

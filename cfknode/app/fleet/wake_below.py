@@ -1,0 +1,56 @@
+"""Which drones of a fleet learn the drone above alone: those whose reference passes under another's.
+
+A drone that flies through another's wake learns it best from where that drone is, not from its own velocity and
+command, which the controller's answer to the wake also moves (docs/fleet.md#wake-only). A drone that never flies
+under another keeps learning its own air. ``fleet.wake_below`` makes the choice per drone from the references,
+before take-off, for networks that fly beside the fast layer; ``fleet.wake_only`` makes every drone's networks
+wake networks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Sequence
+
+import numpy as np
+
+from cfknode.app.config import Config
+from cfknode.app.learning import beside_layer
+from cfknode.flight.neighbours import NONE_ABOVE
+
+STEP_S = 0.02  # s between the reference samples compared (a 1.5 m/s pass crosses 0.15 m in 0.1 s)
+RADIUS_M = 0.15  # m of horizontal distance within which a drone above's wake reaches the one below
+REACH_M = float(NONE_ABOVE[2])  # m: no wake beyond this gap (the neighbour input's "none above")
+
+
+def passes_under(ref: Any, others: Sequence[Any], radius: float = RADIUS_M, reach: float = REACH_M) -> bool:
+    """Whether ``ref`` (a reference with ``duration`` and ``sample(t).p``) is ever under one of ``others``: within
+    ``radius`` horizontally and below by less than ``reach``, at the same time."""
+    if not others:
+        return False
+    duration = max(float(r.duration) for r in (ref, *others))
+    t = np.arange(0.0, duration + STEP_S, STEP_S)
+    p = np.asarray(ref.sample(t).p)
+    for other in others:
+        d = np.asarray(other.sample(t).p) - p
+        if np.any((d[:, 2] > 0.0) & (d[:, 2] < reach) & (np.hypot(d[:, 0], d[:, 1]) < radius)):
+            return True
+    return False
+
+
+def wake_below_configs(cfg: Config, configs: Sequence[Config], refs: Sequence[Any]) -> list[Config]:
+    """``configs`` with ``fleet.wake_only`` set for each drone whose reference passes under another's, when the
+    networks see the neighbour (``fleet.neighbour_input``), ``fleet.wake_below`` asks for the choice, and they fly
+    beside a fast layer, which keeps the drone's own mass and air (without one, as in the paper, a wake network
+    would leave them unlearned)."""
+    f = cfg.fleet
+    if not (f.neighbour_input and f.wake_below and beside_layer(cfg)) or f.wake_only:
+        return list(configs)
+    out = []
+    for i, c in enumerate(configs):
+        below = passes_under(refs[i], [r for j, r in enumerate(refs) if j != i])
+        out.append(dataclasses.replace(c, fleet=dataclasses.replace(c.fleet, wake_only=True)) if below else c)
+    return out
+
+
+__all__ = ["passes_under", "wake_below_configs"]

@@ -1,0 +1,97 @@
+"""A fleet's drones that fly under another learn its wake alone; the others keep learning their own air."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from cfknode.app.bench.learning_cells import CELLS
+from cfknode.app.config import load_config
+from cfknode.app.fleet import learning as fleet_learning
+from cfknode.app.fleet.flight import drone_configs
+from cfknode.app.fleet.wake_below import passes_under
+
+
+class Path:
+    """A reference: ``p(t)`` for t in [0, duration]."""
+
+    def __init__(self, p: Any, duration: float = 4.0) -> None:
+        self._p, self.duration = p, duration
+
+    def sample(self, t: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(p=np.array([self._p(x) for x in t]))
+
+
+def hover(x: float, y: float, z: float) -> Path:
+    return Path(lambda t: (x, y, z))
+
+
+LINE = Path(lambda t: (-0.5 + 0.25 * t, 0.0, 1.0))  # along x through the origin at 1 m
+
+
+def test_a_line_under_a_hovering_drone_passes_under_it() -> None:
+    assert passes_under(LINE, [hover(0.0, 0.0, 1.3)])
+    assert passes_under(LINE, [hover(0.2, 0.1, 1.5)])  # 0.1 m aside: inside the wake's reach
+
+
+def test_beside_above_beyond_reach_or_below_is_not_under() -> None:
+    assert not passes_under(LINE, [hover(0.0, 0.3, 1.3)])  # 0.3 m aside
+    assert not passes_under(LINE, [hover(0.0, 0.0, 2.8)])  # 1.8 m higher: the wake has died out
+    assert not passes_under(LINE, [hover(0.0, 0.0, 0.7)])  # below it
+    assert not passes_under(LINE, [hover(0.0, 0.0, 1.0)])  # level with it
+    assert not passes_under(LINE, [])
+
+
+def test_under_at_the_same_time_only() -> None:
+    later = Path(lambda t: (0.0, 0.0, 1.3) if t > 3.5 else (1.0, 1.0, 1.3))  # over the crossing point after the line
+    assert not passes_under(LINE, [later])
+
+
+def _cell_configs(name: str, **extra: Any) -> list:
+    cell = next(c for c in CELLS if c.name == name)
+    cfg = load_config(overrides={**cell.config("online+layer", 0, "/tmp/unused", 0), **extra})
+    return drone_configs(cfg)[1]
+
+
+@pytest.mark.parametrize("name", ["crossing dz=0.3 v=1", "stacked pair dz=0.5 r=0.5 v=0.4"])
+def test_the_lower_drone_learns_the_wake_and_the_upper_its_own_air(name: str) -> None:
+    lower, upper = _cell_configs(name)
+    assert lower.fleet.wake_only and not upper.fleet.wake_only
+    assert lower.sim.seed != upper.sim.seed  # each drone's own config, changed in its fleet section alone
+
+
+def test_the_choice_is_off_with_the_key_off_or_without_the_neighbour_input() -> None:
+    name = "crossing dz=0.3 v=1"
+    assert [c.fleet.wake_only for c in _cell_configs(name, **{"fleet.wake_below": False})] == [False, False]
+    assert [c.fleet.wake_only for c in _cell_configs(name, **{"fleet.neighbour_input": False})] == [False, False]
+    assert [c.fleet.wake_only for c in _cell_configs(name, **{"fleet.wake_only": True})] == [True, True]
+    # Without the layer (the paper's method) a wake network would leave the drone's own mass unlearned.
+    assert [c.fleet.wake_only for c in _cell_configs(name, **{"controller.adaptation": "none"})] == [False, False]
+
+
+def test_drones_that_train_alike_share_a_trainer(monkeypatch: pytest.MonkeyPatch) -> None:
+    made: list[Any] = []
+
+    class Trainer:
+        def __init__(self, settings: Any, timeout: float, n: int, start_timeout: float) -> None:
+            self.settings, self.ports, self.closed = settings, [f"port{len(made)}.{i}" for i in range(n)], False
+            self.client = SimpleNamespace(start_problem="")
+            made.append(self)
+
+        def start(self) -> None: ...
+
+        def wait_ready(self, timeout: float) -> bool:
+            return True
+
+        def close(self) -> None:
+            self.closed = True
+
+    monkeypatch.setattr(fleet_learning, "SharedTrainer", Trainer)
+    lower, upper = _cell_configs("crossing dz=0.3 v=1")
+    with fleet_learning.fleet_trainers([lower, upper, upper]) as ports:
+        assert len(made) == 2 and made[0].settings.wake_only and not made[1].settings.wake_only
+        assert ports == ["port0.0", "port1.0", "port1.1"]  # each drone's port, in the drones' order
+    assert all(t.closed for t in made)
