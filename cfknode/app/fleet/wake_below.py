@@ -16,11 +16,10 @@ import numpy as np
 
 from cfknode.app.config import Config
 from cfknode.app.learning import beside_layer
-from cfknode.flight.neighbours import NONE_ABOVE
+from cfknode.flight.adaptation.wake_guard import REACH_M
 
 STEP_S = 0.02  # s between the reference samples compared (a 1.5 m/s pass crosses 0.15 m in 0.1 s)
 RADIUS_M = 0.15  # m of horizontal distance within which a drone above's wake reaches the one below
-REACH_M = float(NONE_ABOVE[2])  # m: no wake beyond this gap (the neighbour input's "none above")
 
 
 def passes_under(ref: Any, others: Sequence[Any], radius: float = RADIUS_M, reach: float = REACH_M) -> bool:
