@@ -217,7 +217,7 @@ def test_a_config_file_becomes_every_flight_s_overrides_before_the_command_line_
     from cfknode.app.bench.learning import _command, _file_overrides
     from cfknode.app.config import ConfigError
 
-    profile = Path(__file__).resolve().parents[1] / "examples" / "learning-in-a-wake.yaml"
+    profile = Path(__file__).resolve().parents[1] / "cfknode" / "config" / "wake.yaml"  # a partial config
     extra = dict(_file_overrides(str(profile)))
     assert extra["online.layer_replay_windows"] == 9 and extra["online.gate_layer_min_pairs"] == 800
     job = Job(BY_NAME["vertical A=0.3 f=0.5"], "online+layer", 0, str(tmp_path), 2.0, tuple(extra.items()))

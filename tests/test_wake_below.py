@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cfknode.app.bench.learning_cells import CELLS
-from cfknode.app.config import load_config
+from cfknode.app.config import ConfigError, load_config, packaged_settings, with_defaults
 from cfknode.app.fleet import learning as fleet_learning
 from cfknode.app.fleet.flight import drone_configs
 from cfknode.app.fleet.wake_below import passes_under
@@ -95,3 +95,41 @@ def test_drones_that_train_alike_share_a_trainer(monkeypatch: pytest.MonkeyPatch
         assert len(made) == 2 and made[0].settings.wake_only and not made[1].settings.wake_only
         assert ports == ["port0.0", "port1.0", "port1.1"]  # each drone's port, in the drones' order
     assert all(t.closed for t in made)
+
+
+def _wake_settings_of(c: Any) -> tuple:
+    return (c.online.t_col, c.online.epochs, c.knode.queue_size, c.online.layer_filter_hz, c.online.layer_command_lag_s,
+            c.online.gate_layer_rejudge)
+
+
+WAKE = (2.0, 300, 1, 8.0, (0.015, 0.015), False)  # cfknode/config/wake.yaml
+
+
+def test_a_drone_learning_a_wake_flies_the_wake_settings_and_the_others_the_defaults() -> None:
+    lower, upper = _cell_configs("crossing dz=0.3 v=0.5")
+    assert _wake_settings_of(lower) == WAKE
+    assert _wake_settings_of(upper) == _wake_settings_of(load_config())
+    both = _cell_configs("crossing dz=0.3 v=0.5", **{"fleet.wake_only": True})
+    assert [_wake_settings_of(c) for c in both] == [WAKE, WAKE]
+    assert [_wake_settings_of(c) for c in _cell_configs("crossing dz=0.3 v=0.5", **{"fleet.wake_below": False})] \
+        == [_wake_settings_of(upper)] * 2
+    # The paper's method, without the layer: no drone is a wake drone, and none changes its settings.
+    assert [c.online.t_col for c in _cell_configs("crossing dz=0.3 v=0.5", **{"controller.adaptation": "none"})] \
+        == [upper.online.t_col] * 2
+
+
+def test_a_setting_the_user_gave_stays_the_wake_drone_s_own() -> None:
+    lower, upper = _cell_configs("crossing dz=0.3 v=0.5", **{"online.t_col": 1.0, "online.layer_filter_hz": 4.0})
+    assert (lower.online.t_col, lower.online.layer_filter_hz, lower.online.epochs) == (1.0, 4.0, 300)
+    assert (upper.online.t_col, upper.online.layer_filter_hz) == (1.0, 4.0)
+
+
+def test_the_wake_settings_are_each_a_change_from_the_defaults_and_valid() -> None:
+    default, wake = load_config(), packaged_settings("wake")
+    changed = with_defaults(default, wake, default)
+    for key, value in wake.items():
+        section, name = key.split(".")
+        assert getattr(getattr(changed, section), name) == (tuple(value) if isinstance(value, list) else value)
+        assert getattr(getattr(changed, section), name) != getattr(getattr(default, section), name), key
+    with pytest.raises(ConfigError, match="unknown config key 'online.nope'"):
+        with_defaults(default, {"online.nope": 1}, default)

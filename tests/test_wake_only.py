@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from cfknode.app.config import ConfigError, load_config
+from cfknode.app.config import ConfigError, load_config, packaged_settings, with_defaults
 from cfknode.app.learning import check_online, learner_settings, trainer_settings
 from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.loop import where_flown
@@ -241,7 +241,7 @@ def _wake_learner(above: dict):
     ``above["d"]`` (a callable of the tick's index, or a fixed relative position)."""
     from test_online_learner import ScriptedTrainer, outcome_with
 
-    cfg = load_config(overrides={**_flat(yaml.safe_load(PROFILE.read_text())), "fleet.size": 2, "online.enabled": True})
+    cfg = _wake_drone(**{"fleet.size": 2, "online.enabled": True})
     settings = dataclasses.replace(learner_settings(cfg, True), replay_windows=2)
     k = 0
     slot = ModelSlot(None, version=0)
@@ -302,11 +302,18 @@ def test_wake_only_without_the_neighbour_input_is_refused_in_one_line():
 
 def test_the_profile_sets_wake_only_for_a_fleet_and_nothing_for_one_drone():
     overrides = _flat(yaml.safe_load(PROFILE.read_text()))
-    fleet = load_config(overrides={**overrides, "fleet.size": 2, "online.enabled": True})
+    fleet = _wake_drone(**{"fleet.size": 2, "online.enabled": True})
     one = load_config(overrides={**overrides, "online.enabled": True})
     assert trainer_settings(fleet).wake_only and learner_settings(fleet, True).wake_only
     assert not trainer_settings(one).wake_only and not learner_settings(one, True).wake_only
     assert learner_settings(fleet, True).command_lag_s == (0.015, 0.015)  # the thrust sent, through the motors' lag
+
+
+def _wake_drone(**overrides) -> object:
+    """A fleet drone's config as the fleet builds it for a drone learning a wake: the profile's switches, then the
+    packaged wake settings wherever the config keeps the default (cfknode/app/fleet/wake_below.py)."""
+    cfg = load_config(overrides={**_flat(yaml.safe_load(PROFILE.read_text())), **overrides})
+    return with_defaults(cfg, packaged_settings("wake"))
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:

@@ -33,7 +33,7 @@ __all__ = [
     "Config", "ConfigError", "ControllerConfig", "DashboardConfig", "EstimatorConfig", "FaultInjection", "FaultWindow",
     "FaultsConfig", "Gust", "HardwareConfig", "KnodeConfig", "LogConfig", "MassChange", "OnlineConfig", "RadioConfig",
     "SafetyConfig", "SimConfig", "TrainingConfig", "TrajectoryConfig", "Vec3", "VehicleConfig", "build_config",
-    "default_dict", "load_config", "parse_override", "read_yaml_mapping",
+    "default_dict", "load_config", "packaged_settings", "parse_override", "read_yaml_mapping", "with_defaults",
 ]
 
 
@@ -93,6 +93,30 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     if not asked and isinstance(data.get("controller"), Mapping) and data["controller"].get("kind") == "geometric":
         data = _merge(data, _nest("controller.adaptation", "none"), prefix="")
     return build_config(data)
+
+
+def packaged_settings(name: str) -> dict[str, Any]:
+    """The dotted keys and values of the packaged partial config ``config/<name>.yaml`` (e.g. "wake")."""
+    return _dotted(yaml.safe_load(resources.files("cfknode").joinpath(f"config/{name}.yaml").read_text()), "")
+
+
+def with_defaults(cfg: Config, values: Mapping[str, Any], default: Config | None = None) -> Config:
+    """``cfg`` with the dotted ``values`` wherever it keeps the packaged default (``default``, built here when
+    None): defaults of a context, under the settings a user gave, e.g. a fleet drone learning a wake."""
+    default = default if default is not None else load_config()
+    data = cfg.to_dict()
+    for key, value in values.items():
+        changed = _merge(data, _nest(key, value), prefix="")  # an unknown key is refused here, in one line
+        if _get(cfg, key) == _get(default, key):
+            data = changed
+    return build_config(data)
+
+
+def _dotted(tree: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        out.update(_dotted(value, f"{prefix}{key}.") if isinstance(value, Mapping) else {f"{prefix}{key}": value})
+    return out
 
 
 def build_config(data: Mapping[str, Any]) -> Config:

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from cfknode.app.config import PACKAGED, load_config
+from cfknode.app.config import PACKAGED, load_config, packaged_settings
 from cfknode.app.config_bounds import BOUNDS
 from cfknode.app.declarations import Declared, declared, yaml_comment
 
@@ -32,7 +32,15 @@ Each key is declared once, on its field in the layer's settings module (`setting
 packaged values are in two files loaded together: `cfknode/config/default.yaml` holds the keys a
 user sets, `cfknode/config/tuning.yaml` the tuning and bench keys. Both take the same dotted keys:
 a user's `--config` file or `--set key=value` overrides a key of either. The measurements behind
-the values are in [history.md](history.md#defaults-and-the-measurements-behind-them).
+the values are in [history.md](history.md#defaults-and-the-measurements-behind-them). A third,
+`cfknode/config/wake.yaml`, holds the values of a fleet drone that learns a wake (its last table).
+"""
+
+_WAKE = """## A fleet drone learning a wake (`cfknode/config/wake.yaml`)
+
+A fleet drone whose networks learn the wake of a drone above (`fleet.wake_only`, or chosen by
+`fleet.wake_below`; [fleet.md](fleet.md#wake-only)) takes these values wherever its configuration keeps
+the default: a value given in a `--config` file or with `--set` that differs from the default stays its own.
 """
 
 _PARTS = (
@@ -147,6 +155,9 @@ def configuration_doc() -> str:
                 lines.append("|---|---|---|---|---|")
             lines.append(_row(d, cfg))
         lines.append("")
+    lines += [_WAKE, "| key | value | default |", "|---|---|---|"]
+    lines += [f"| `{k}` | `{_cell(_value(v))}` | `{_cell(_value(_get(cfg, k)))}` |"
+              for k, v in packaged_settings("wake").items()]
     return "\n".join(lines).rstrip("\n") + "\n"
 
 

@@ -32,6 +32,7 @@ class FleetConfig:
     wake_only: bool = setting(
         doc="with neighbour_input: the model sees only that, not the drone's own velocity and command (docs/fleet.md#wake-only)")
     wake_below: bool = setting(
-        doc="beside the layer: wake_only for drones whose reference passes under another's (docs/fleet.md#wake-only)")
+        doc="beside the layer: wake_only and config/wake.yaml for drones passing under another "
+            "(docs/fleet.md#wake-only)")
     ray_radio_resource: str = setting(
         doc="--executor ray: the Ray resource of the node with the drone's radio (docs/fleet-ray.md)")

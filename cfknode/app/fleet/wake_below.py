@@ -1,10 +1,10 @@
-"""Which drones of a fleet learn the drone above alone: those whose reference passes under another's.
+"""Which drones of a fleet learn the drone above alone, those whose reference passes under another's, and how.
 
 A drone that flies through another's wake learns it best from where that drone is, not from its own velocity and
 command, which the controller's answer to the wake also moves (docs/fleet.md#wake-only). A drone that never flies
 under another keeps learning its own air. ``fleet.wake_below`` makes the choice per drone from the references,
 before take-off, for networks that fly beside the fast layer; ``fleet.wake_only`` makes every drone's networks
-wake networks.
+wake networks. Either way such a drone learns with the wake's settings (``cfknode/config/wake.yaml``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from cfknode.app.config import Config
+from cfknode.app.config import Config, load_config, packaged_settings, with_defaults
 from cfknode.app.learning import beside_layer
 from cfknode.flight.adaptation.wake_guard import REACH_M
 
@@ -38,17 +38,23 @@ def passes_under(ref: Any, others: Sequence[Any], radius: float = RADIUS_M, reac
 
 
 def wake_below_configs(cfg: Config, configs: Sequence[Config], refs: Sequence[Any]) -> list[Config]:
-    """``configs`` with ``fleet.wake_only`` set for each drone whose reference passes under another's, when the
-    networks see the neighbour (``fleet.neighbour_input``), ``fleet.wake_below`` asks for the choice, and they fly
-    beside a fast layer, which keeps the drone's own mass and air (without one, as in the paper, a wake network
-    would leave them unlearned)."""
+    """``configs`` with the drones that learn a wake chosen and set to learn it, when the networks see the
+    neighbour (``fleet.neighbour_input``) beside a fast layer, which keeps the drone's own mass and air (without
+    one, as in the paper, a wake network would leave them unlearned).
+
+    ``fleet.wake_below`` chooses each drone whose reference passes under another's (``fleet.wake_only`` chooses
+    every drone). A chosen drone flies the wake's learning settings (``cfknode/config/wake.yaml``) wherever its
+    config keeps the default: a wake is a few centimetres wide and crossed in a tenth of a second.
+    """
     f = cfg.fleet
-    if not (f.neighbour_input and f.wake_below and beside_layer(cfg)) or f.wake_only:
+    if not (f.neighbour_input and beside_layer(cfg)):
         return list(configs)
+    settings, default = packaged_settings("wake"), load_config()
     out = []
     for i, c in enumerate(configs):
-        below = passes_under(refs[i], [r for j, r in enumerate(refs) if j != i])
-        out.append(dataclasses.replace(c, fleet=dataclasses.replace(c.fleet, wake_only=True)) if below else c)
+        if f.wake_below and not c.fleet.wake_only and passes_under(refs[i], [r for j, r in enumerate(refs) if j != i]):
+            c = dataclasses.replace(c, fleet=dataclasses.replace(c.fleet, wake_only=True))
+        out.append(with_defaults(c, settings, default) if c.fleet.wake_only else c)
     return out
 
 
