@@ -12,7 +12,9 @@ from cfknode.app.bench.learning_cells import CELLS
 from cfknode.app.config import ConfigError, load_config, packaged_settings, with_defaults
 from cfknode.app.fleet import learning as fleet_learning
 from cfknode.app.fleet.flight import drone_configs
+from cfknode.app.fleet.robots import check_robot_fleet
 from cfknode.app.fleet.wake_below import passes_under
+from cfknode.app.learning import trainer_settings, wake_only
 
 
 class Path:
@@ -133,3 +135,20 @@ def test_the_wake_settings_are_each_a_change_from_the_defaults_and_valid() -> No
         assert getattr(getattr(changed, section), name) != getattr(getattr(default, section), name), key
     with pytest.raises(ConfigError, match="unknown config key 'online.nope'"):
         with_defaults(default, {"online.nope": 1}, default)
+
+
+def test_a_fleet_of_robots_learns_a_wake_where_it_asks_and_sees_its_fleet(tmp_path) -> None:
+    """A robot's flight config is a drone of a fleet of robots: ``fleet.wake_only`` reaches its learning, with the
+    wake's settings; no drone is chosen from references, which are placed where the mocap sees the robots."""
+    from test_fleet_robots import cfg_for, ring_positions, write_robots
+
+    a, b = ring_positions(2)
+    robots = write_robots(tmp_path / "robots.yaml", {"cf1": ("sim://0", a, True), "cf2": ("sim://1", b, True)})
+    learning = {"fleet.neighbour_input": True, "online.enabled": True}
+    waking = check_robot_fleet(cfg_for(tmp_path, robots, **learning, **{"fleet.wake_only": True}), ["cf1", "cf2"])[1]
+    assert [c.fleet.size for c in waking] == [2, 2]
+    assert [wake_only(c) and trainer_settings(c).wake_only for c in waking] == [True, True]
+    assert [_wake_settings_of(c) for c in waking] == [WAKE, WAKE]
+    own_air = check_robot_fleet(cfg_for(tmp_path, robots, **learning), ["cf1", "cf2"])[1]
+    assert [wake_only(c) for c in own_air] == [False, False]
+    assert [_wake_settings_of(c) for c in own_air] == [_wake_settings_of(load_config())] * 2

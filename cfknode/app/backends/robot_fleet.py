@@ -35,6 +35,17 @@ def robot_config(cfg: Config, robot: Robot) -> Config:
     return flight_config(named, robot)
 
 
+def robot_configs(cfg: Config, robots: Sequence[Robot]) -> list[Config]:
+    """Each robot's flight config (``robot_config``) as a drone of a fleet of them: ``fleet.size`` is the number of
+    robots, so its learning sees the fleet (the neighbour input, wake networks), and a drone whose networks learn a
+    wake (``fleet.wake_only``) takes the wake's settings (cfknode/app/fleet/wake_below.py)."""
+    from cfknode.app.fleet.wake_below import wake_below_configs
+
+    configs = [robot_config(cfg, r) for r in robots]
+    configs = [dataclasses.replace(c, fleet=dataclasses.replace(c.fleet, size=len(robots))) for c in configs]
+    return wake_below_configs(cfg, configs, None)
+
+
 @dataclass(frozen=True)
 class SimulatedLab:
     sims: tuple[Any, ...]  # SimCrazyflie per robot, in the robots' order
@@ -125,15 +136,15 @@ class RobotFleetBackend:
                      for robot in robots]
             clock = WallClock()
             drones = []
-            for robot, link, sim in zip(robots, links, sims):
+            for robot, config, link, sim in zip(robots, robot_configs(cfg, robots), links, sims):
                 source = hub.source(robot.name)
                 source.set_time_base(clock.now)
                 link.radio.set_clock(clock.now)
                 drones.append(CrazyflieBackend(HardwareBackend(
-                    robot=robot, config=robot_config(cfg, robot), mocap=source, radio=link.radio, clock=clock,
+                    robot=robot, config=config, mocap=source, radio=link.radio, clock=clock,
                     preflight=link.preflight, start_position=link.start_position,
                     truth=(lambda s=sim: s.state) if sim is not None else None, sim=sim)))
             yield cls(drones, clock, hub)
 
 
-__all__ = ["RobotFleetBackend", "SimulatedLab", "robot_config", "simulated_lab"]
+__all__ = ["RobotFleetBackend", "SimulatedLab", "robot_config", "robot_configs", "simulated_lab"]

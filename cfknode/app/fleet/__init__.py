@@ -6,7 +6,7 @@
 - ``robots``: ``--robots cf1,cf2``, named robots from the robots file;
 - ``ray_fleet`` and ``drone_actor``: ``--executor ray``, each drone a Ray actor;
 - ``learning``: online learning for every drone, on trainers shared by the drones that train alike;
-- ``wake_below``: which drones learn the wake of the one above alone, from the references;
+- ``wake_below``: which drones learn the wake of the one above alone, from the references, and with what;
 - ``settings``: the ``fleet:`` config section.
 
 Kept light: the config imports ``settings``, so nothing is imported here.

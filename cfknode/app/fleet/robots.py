@@ -113,7 +113,7 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
     """Everything that can be refused before connecting: the settings, the names, the references
     from the robots' initial positions (separation) and the radios (packet budget, real URIs).
     Returns the robots, each one's flight config and the packets/s per radio."""
-    from cfknode.app.backends.robot_fleet import robot_config
+    from cfknode.app.backends.robot_fleet import robot_configs
     from cfknode.sim_backend.faults import check_faults
 
     if len(names) < 2:
@@ -126,7 +126,7 @@ def check_robot_fleet(cfg: Config, names: Sequence[str]) -> tuple[list[Robot], l
         raise ConfigError("controller.adaptation oracle reads the simulator's true mass: simulation only (backend sim)")
     check_faults(cfg.faults, cfg.sim, cfg.controller.kind, cfg.backend)
     robots = select_robots(cfg, names)
-    configs = [robot_config(cfg, r) for r in robots]
+    configs = robot_configs(cfg, robots)
     refs = robot_references(cfg, [r.initial_position for r in robots])
     placed_fence_events(cfg, names, refs)  # refused here; a forced fleet's events are logged once it connected
     radio_pps = preflight(cfg, names, configs, refs)

@@ -37,13 +37,14 @@ def passes_under(ref: Any, others: Sequence[Any], radius: float = RADIUS_M, reac
     return False
 
 
-def wake_below_configs(cfg: Config, configs: Sequence[Config], refs: Sequence[Any]) -> list[Config]:
+def wake_below_configs(cfg: Config, configs: Sequence[Config], refs: Sequence[Any] | None) -> list[Config]:
     """``configs`` with the drones that learn a wake chosen and set to learn it, when the networks see the
     neighbour (``fleet.neighbour_input``) beside a fast layer, which keeps the drone's own mass and air (without
     one, as in the paper, a wake network would leave them unlearned).
 
-    ``fleet.wake_below`` chooses each drone whose reference passes under another's (``fleet.wake_only`` chooses
-    every drone). A chosen drone flies the wake's learning settings (``cfknode/config/wake.yaml``) wherever its
+    ``fleet.wake_below`` chooses each drone whose reference passes under another's, where ``refs`` are known before
+    take-off (None: a fleet of robots, placed where the mocap sees them); ``fleet.wake_only`` chooses every drone.
+    A chosen drone flies the wake's learning settings (``cfknode/config/wake.yaml``) wherever its
     config keeps the default: a wake is a few centimetres wide and crossed in a tenth of a second.
     """
     f = cfg.fleet
@@ -52,7 +53,8 @@ def wake_below_configs(cfg: Config, configs: Sequence[Config], refs: Sequence[An
     settings, default = packaged_settings("wake"), load_config()
     out = []
     for i, c in enumerate(configs):
-        if f.wake_below and not c.fleet.wake_only and passes_under(refs[i], [r for j, r in enumerate(refs) if j != i]):
+        others = [] if refs is None or not f.wake_below or c.fleet.wake_only else [*refs[:i], *refs[i + 1:]]
+        if others and passes_under(refs[i], others):
             c = dataclasses.replace(c, fleet=dataclasses.replace(c.fleet, wake_only=True))
         out.append(with_defaults(c, settings, default) if c.fleet.wake_only else c)
     return out
