@@ -206,6 +206,7 @@ def test_no_window_is_sent_while_the_fast_layer_is_still_learning_the_mass() -> 
     flight.layer = lambda t: AdaptationEstimate(np.zeros(3), 1.0 + 0.1 * min(t, 1.0), np.ones(3))  # moving for 1 s
     flight.run(1.0)
     assert trainer.requests == [] and learner.summary_fields()["windows_unsettled"] == 1
+    assert not learner.summary_fields()["online_wake_only"]  # a drone's own air, not a wake above
     flight.run(0.6)  # the window closing at 1.005 s still moved; the next one, settled at 1.1, is trained on
     assert len(trainer.requests) == 1 and learner.summary_fields()["windows_unsettled"] == 2
     assert trainer.requests[0].window.t0 > 1.0

@@ -240,6 +240,8 @@ def test_verbose_prints_every_row_and_the_default_the_brief_ones() -> None:
 def test_a_fleet_drone_is_one_row() -> None:
     row = drone_row("cf1", flight(extra={"models_accepted": 2}), "flight complete: landed")
     assert row == "cf1: MSE 4.67e-02 m^2, tick 0.40/0.40 ms, 2 models, flight complete: landed"
+    wake = drone_row("cf1", flight(extra={"models_accepted": 2, "online_wake_only": True}), "flight complete: landed")
+    assert wake == "cf1: MSE 4.67e-02 m^2, tick 0.40/0.40 ms, 2 wake models, flight complete: landed"
 
 
 def test_summary_from_log_matches_the_arrays(tmp_path: Path) -> None:

@@ -287,6 +287,7 @@ def test_a_drone_that_stays_at_one_point_of_the_wake_sends_no_round_until_the_dr
     fly(3 * t_col + 0.1)
     assert learner.recorder.windows == 3 and trainer.requests == []
     assert learner.stats.windows_one_point_above == 3 and learner.summary_fields()["windows_one_point_above"] == 3
+    assert learner.summary_fields()["online_wake_only"]  # the fleet's summary line says "wake models"
     assert learner.stats.windows_no_drone_above == 0
     above["d"] = lambda k: np.array([0.002 * (k % 400), 0.0, 0.5])  # it flies off sideways, 0.8 m in a second
     fly(t_col)

@@ -96,6 +96,7 @@ class LearnerReports:
         return {
             "online_mode": mode,
             "online_t_col_s": self.s.t_col,
+            "online_wake_only": self.s.wake_only is not None,  # its networks learn the wake of a drone above
             "online_latency": (self.s.latency.mode if self.s.lockstep and not self.s.paper_lockstep
                                else ("paper" if self.s.paper_lockstep else "wall")),
             "models_trained": s.rounds_trained,

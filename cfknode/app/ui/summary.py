@@ -366,10 +366,12 @@ def render_brief(summary: FlightSummary, console: Console) -> None:
 
 
 def drone_row(name: str, summary: FlightSummary, outcome: str) -> str:
-    """One fleet drone in one line: its tracking, tick timing, models accepted and outcome."""
+    """One fleet drone in one line: its tracking, tick timing, models accepted (of the wake above, for a drone
+    whose networks learn it) and outcome."""
     s = summary
     models = s.extra.get("models_accepted")
-    learned = f", {models} models" if models is not None else ""
+    kind = " wake" if s.extra.get("online_wake_only") else ""
+    learned = f", {models}{kind} models" if models is not None else ""
     tick = f"{s.compute_median_ms:.2f}/{s.compute_p99_ms:.2f}" if math.isfinite(s.compute_p99_ms) else "n/a"
     mse = f"{s.mse:.2e}" if math.isfinite(s.mse) else "n/a"
     return f"{name}: MSE {mse} m^2, tick {tick} ms{learned}, {outcome}"
