@@ -33,7 +33,7 @@ __all__ = [
     "Config", "ConfigError", "ControllerConfig", "DashboardConfig", "EstimatorConfig", "FaultInjection", "FaultWindow",
     "FaultsConfig", "Gust", "HardwareConfig", "KnodeConfig", "LogConfig", "MassChange", "OnlineConfig", "RadioConfig",
     "SafetyConfig", "SimConfig", "TrainingConfig", "TrajectoryConfig", "Vec3", "VehicleConfig", "build_config",
-    "default_dict", "load_config", "packaged_settings", "parse_override", "read_yaml_mapping", "with_defaults",
+    "default_dict", "dotted", "load_config", "packaged_settings", "parse_override", "read_yaml_mapping", "with_defaults",
 ]
 
 
@@ -97,7 +97,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
 
 def packaged_settings(name: str) -> dict[str, Any]:
     """The dotted keys and values of the packaged partial config ``config/<name>.yaml`` (e.g. "wake")."""
-    return _dotted(yaml.safe_load(resources.files("cfknode").joinpath(f"config/{name}.yaml").read_text()), "")
+    return dotted(yaml.safe_load(resources.files("cfknode").joinpath(f"config/{name}.yaml").read_text()))
 
 
 def with_defaults(cfg: Config, values: Mapping[str, Any], default: Config | None = None) -> Config:
@@ -112,10 +112,11 @@ def with_defaults(cfg: Config, values: Mapping[str, Any], default: Config | None
     return build_config(data)
 
 
-def _dotted(tree: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+def dotted(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested config mapping as dotted keys and their leaf values (a list is one leaf), in file order."""
     out: dict[str, Any] = {}
     for key, value in tree.items():
-        out.update(_dotted(value, f"{prefix}{key}.") if isinstance(value, Mapping) else {f"{prefix}{key}": value})
+        out.update(dotted(value, f"{prefix}{key}.") if isinstance(value, Mapping) else {f"{prefix}{key}": value})
     return out
 
 

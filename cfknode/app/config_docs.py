@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from cfknode.app.config import PACKAGED, load_config, packaged_settings
+from cfknode.app.config import PACKAGED, dotted, load_config, packaged_settings
 from cfknode.app.config_bounds import BOUNDS
 from cfknode.app.declarations import Declared, declared, yaml_comment
 
@@ -51,13 +51,7 @@ _PARTS = (
 
 def flat_keys(data: Any, prefix: str = "") -> list[str]:
     """The leaf keys of a YAML mapping, dotted (a list is one leaf)."""
-    out: list[str] = []
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.extend(flat_keys(value, f"{prefix}{key}."))
-        else:
-            out.append(f"{prefix}{key}")
-    return out
+    return list(dotted(data, prefix))
 
 
 def packaged_keys(name: str) -> list[str]:

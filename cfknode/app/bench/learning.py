@@ -292,16 +292,10 @@ def _file_overrides(path: str) -> tuple[tuple[str, Any], ...]:
     """A config file's keys as dotted overrides (checked whole first: a bad file is a one-line error)."""
     if not path:
         return ()
-    from cfknode.app.config import load_config, read_yaml_mapping
+    from cfknode.app.config import dotted, load_config, read_yaml_mapping
 
     load_config(path)
-
-    def flat(prefix: str, value: Any) -> list[tuple[str, Any]]:
-        if isinstance(value, dict):
-            return [kv for k, v in value.items() for kv in flat(f"{prefix}{k}.", v)]
-        return [(prefix[:-1], value)]
-
-    return tuple(flat("", read_yaml_mapping(Path(path))))
+    return tuple(dotted(read_yaml_mapping(Path(path))).items())
 
 
 def run_learning(args: argparse.Namespace, version: str) -> int:
