@@ -35,8 +35,9 @@ class LandingGate(Protocol):
         """Where a drone at ``p`` descends (same height) and how long it glides there."""
         ...
 
-    def blocked(self, p: np.ndarray) -> bool:
-        """Whether a flying drone is below ``p`` within the separation: no descent now."""
+    def blocked(self, p: np.ndarray, descending: bool = False) -> bool:
+        """Whether a flying drone is below ``p`` within the separation: no descent now (``descending``:
+        asked again on the way down, where a gate may ask less than to begin it)."""
         ...
 
 
@@ -99,7 +100,7 @@ class OrderedLanding:
             if not self._gate.blocked(here):
                 self._descent = Landing.plan(here, self._ground_z, now, self._speed)
             return
-        if self._gate.blocked(self._descent.sample(np.array([now])).p[0]):
+        if self._gate.blocked(self._descent.sample(np.array([now])).p[0], descending=True):
             # A flying drone came under it: hover where the descent has got to, and wait again.
             where = self._descent.sample(np.array([now])).p[0]
             self._from = self._to = where.copy()

@@ -126,6 +126,22 @@ def test_the_timeline_compares_drones_at_the_same_flight_time_however_far_apart_
     assert [k.calls for k in links] == [[], []]
 
 
+def test_the_drivers_view_tells_every_drones_flight_time_and_an_ended_one_holds_none_back():
+    from cfknode.app.fleet.ray_fleet import FleetView
+
+    view = FleetView(2, SimpleNamespace(_spots={}))
+    view.seen(0, SimpleNamespace(p=(0.5, 0.0, 1.0), state="TRACK", spot=None, t=2.0))
+    view.seen(1, SimpleNamespace(p=None, state="", spot=None, t=0.0))  # not ticked yet
+    told = [[], []]
+    actors = [SimpleNamespace(fleet_view=SimpleNamespace(remote=lambda *a, k=k: told[k].append(a))) for k in (0, 1)]
+    view.push(actors, [True, False])  # cf2's flight has not started to be counted as flying: not told
+    assert told == [[([(0.5, 0.0, 1.0), None], ["TRACK", ""], {}, [2.0, 0.0])], []]
+    view.ended(0, "LANDED")
+    view.seen(0, SimpleNamespace(p=(0.5, 0.0, 0.0), state="LANDED", spot=None, t=4.0))  # a late reply
+    view.push(actors, [False, True])
+    assert told[1][-1][1:] == (["LANDED", ""], {}, [float("inf"), 0.0])
+
+
 @pytest.mark.parametrize("argv, expect", [
     (["--executor", "ray"], "--executor ray flies a fleet (--fleet N, N >= 2); a single flight runs here"),
     (["--fleet", "2", "--address", "127.0.0.1:6379"], "--address needs --executor ray"),
@@ -261,6 +277,7 @@ def test_a_stacked_ray_fleet_stopped_mid_flight_lands_bottom_up_as_a_local_fleet
     on its own, and cf2 came down onto cf1). The pattern is slow (0.05 m/s), so the column stays one
     column however far apart the two actors' lockstep clocks run when the stop reaches them."""
     from cfknode.app.commands.estop_all import estop_all
+    from cfknode.app.fleet.flight import drone_configs
     from cfknode.app.fleet.ray_fleet import run_fleet_ray
     from test_fleet_stack import _airborne_min_separation
 
@@ -274,9 +291,12 @@ def test_a_stacked_ray_fleet_stopped_mid_flight_lands_bottom_up_as_a_local_fleet
     assert estop_all(tmp_path / "estop", "land", timeout=10.0) == 0
     driver.join(HARNESS_GUARD_S)  # a hang guard, not a timing test
     result = out["result"]
+    first_landing = min(r.segments["land"][0] for r in drone_configs(cfg)[2])  # the mission's own, lowest first
     for d in result.drones:
         assert d.outcome.state.value == "LANDED" and d.outcome.cause in ("estop_land", "fleet_fault"), d.outcome.message
-        assert d.record.t[-1] < 10.0  # stopped mid-flight, not at the mission's end
+        # Stopped mid-flight, not at the mission's end: the stop took before the mission's first landing was due
+        # (the upper drone's record ends later: it waits for the lower one, then descends from 1.3 m).
+        assert d.outcome.t < first_landing
     assert _airborne_min_separation(result) >= cfg.fleet.min_separation
     ends = [d.record.p[d.record.ticks - 1] for d in result.drones]
     assert np.hypot(*(ends[0][:2] - ends[1][:2])) >= cfg.fleet.min_separation  # side by side on the ground

@@ -3,6 +3,8 @@ fleet never lands one drone onto another (it glides clear of those below, then l
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -184,6 +186,61 @@ def test_a_ray_actors_gate_judges_by_the_fleet_the_driver_last_told_it(tmp_path)
     assert not gate.blocked(here)  # the one below is down
 
 
+def test_a_ray_actor_that_ran_ahead_begins_no_descent_until_the_fleets_view_catches_up(tmp_path):
+    """Each actor's lockstep clock runs at its own pace: the driver's word on the drone below may come from
+    before it took off (no position yet, still in pre-flight), which would send the upper drone straight down
+    onto it."""
+    from cfknode.app.fleet.landing_order import VIEW_LAG_S, StackGeometry, ViewGate
+
+    cfg = stack_cfg(tmp_path, size=2)
+    notes = []
+    gate = ViewGate(StackGeometry.from_config(cfg), 1, notes.append)
+    here = np.array([0.5, 0.0, 1.5])
+    gate.at(3.0)  # the actor's own flight time
+    assert gate.blocked(here)  # no view of the fleet yet
+    gate.update([None, tuple(here)], ["PREFLIGHT", "TRACK"], {}, [0.01, 3.0])  # cf1 as it was before take-off
+    spot, move_s = gate.spot(here)
+    assert move_s == 0.0 and np.allclose(spot, here)  # nothing known below: a straight descent ...
+    assert gate.blocked(here)  # ... which it does not begin on a view 3 s old
+    assert not gate.blocked(here, descending=True)  # on the way down only a flying drone below stops it
+    gate.update([(0.5, 0.0, 1.0), tuple(here)], ["TRACK", "TRACK"], {}, [3.0 - VIEW_LAG_S + 0.01, 3.0])
+    spot, move_s = gate.spot(here)
+    assert move_s > 0 and np.hypot(*(spot[:2] - [0.5, 0.0])) >= LANDING_CLEARANCE * cfg.fleet.min_separation - 1e-9
+    assert gate.blocked(here)  # caught up: cf1 flies below it
+    gate.update([(0.5, 0.0, 0.0), tuple(here)], ["LANDED", "TRACK"], {}, [float("inf"), 3.0])
+    assert not gate.blocked(here)  # cf1 is down and its flight has ended: it holds nobody back
+    assert notes == ["waits to land: no view of the fleet yet", "waits to land: a flying drone is below it"]
+
+
+def test_a_lockstep_actor_that_ran_ahead_holds_its_loop_until_the_view_catches_up(tmp_path):
+    """Hovering in flight time would not do: the actor's own clock runs on while it hovers. Its loop (and
+    with it its simulator) waits instead, for the view to come within VIEW_LAG_S or to stand still."""
+    from cfknode.app.fleet.landing_order import SILENT_S, VIEW_LAG_S, StackGeometry, ViewGate
+
+    wall = [0.0]
+    gate = ViewGate(StackGeometry.from_config(stack_cfg(tmp_path, size=2)), 1, wall=lambda: wall[0])
+    here = np.array([0.5, 0.0, 1.5])
+    gate.at(3.0)
+    gate.update([(0.5, 0.0, 1.0), tuple(here)], ["TRACK", "TRACK"], {}, [1.0, 3.0])
+    gate.catch_up()  # not waiting to descend: returns at once
+    assert gate.caught_up_s == 0.0
+    assert gate.blocked(here)  # a view 2 s behind
+    released = threading.Event()
+    loop = threading.Thread(target=lambda: (gate.catch_up(), released.set()), daemon=True)
+    loop.start()
+    assert not released.wait(0.2)  # holds the loop
+    gate.update([(0.5, 0.0, 1.0), tuple(here)], ["TRACK", "TRACK"], {}, [3.0 - VIEW_LAG_S, 3.0])
+    assert released.wait(10.0)  # a hang guard
+    loop.join(10.0)
+    # A drone whose time stands still (started late, or hung until the driver has its ending): it does not
+    # hold the loop for ever; the drone hovers on in flight time.
+    gate.at(6.0)
+    assert gate.blocked(here)
+    wall[0] += SILENT_S
+    gate.catch_up()
+    assert gate.blocked(here)  # still not descending on a view 3 s old
+
+
 # --- in flight ----------------------------------------------------------------------------------
 
 
@@ -292,11 +349,13 @@ class _Gate:
 
     def __init__(self, spots, free_at):
         self.spots, self.free_at, self.now = list(spots), free_at, 0.0
+        self.asked: list[bool] = []  # each blocked() call: asked on the way down?
 
     def spot(self, p):
         return np.array(self.spots.pop(0) if self.spots else p, dtype=float), 1.0
 
-    def blocked(self, p):
+    def blocked(self, p, descending=False):
+        self.asked.append(descending)
         return self.now < self.free_at
 
 
@@ -314,10 +373,11 @@ def test_an_ordered_landing_glides_waits_for_the_drone_below_then_descends():
     gate.now = 3.0
     landing.advance(3.0)
     assert landing.phase == "descend" and landing.t_end == pytest.approx(3.0 + 1.875 * 1.5 / 0.5)
+    assert not any(gate.asked)  # every question so far was whether to begin the descent
     end = landing.sample(np.array([landing.t_end])).p[0]
     assert np.allclose(end, [0.95, 0.0, 0.0])
     gate.free_at = 10.0  # a flying drone comes under it on the way down: it hovers where it got to
     gate.now = 4.0
     landing.advance(4.0)
-    assert landing.phase == "glide" and landing.t_end == np.inf
+    assert landing.phase == "glide" and landing.t_end == np.inf and gate.asked[-1]  # asked on the way down
     assert 0.0 < landing.sample(np.array([5.0])).p[0][2] < 1.5

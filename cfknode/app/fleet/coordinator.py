@@ -189,7 +189,7 @@ class _Gate:
         co._spots[k] = spot
         return spot, move_s
 
-    def blocked(self, p: np.ndarray) -> bool:
+    def blocked(self, p: np.ndarray, descending: bool = False) -> bool:
         co, k = self.coordinator, self.k
         if not co._blocked(k):
             co._waiting.discard(k)

@@ -3,9 +3,11 @@
 ``fleet_ray`` wraps ``DroneActor`` with ``ray.remote`` (this module imports no Ray at its top,
 so it loads without Ray). The actor flies the drone as a single flight (``mission.run_flight``:
 its own simulator in lockstep, estimator, ``Controller``, supervisor and MCAP log on this node),
-with the fleet's placed reference for this drone. The control loop never waits for the driver:
-the driver's requests (land, hold, stop) are queued and applied by a tick observer on the
-loop's own thread at the next tick, and ``status()`` returns the latest tick's snapshot. A stop
+with the fleet's placed reference for this drone. The control loop never waits for a call of the
+driver's: its requests (land, hold, stop) are queued and applied by a tick observer on the
+loop's own thread at the next tick, and ``status()`` returns the latest tick's snapshot. In
+lockstep, a drone about to descend that has run ahead of the others waits after its tick for
+the driver's view of them to catch up (landing_order.ViewGate.catch_up). A stop
 signal goes straight to the supervisor (its queue is thread-safe), which passes it on to the
 radio at once, so it acts while the loop is stuck. It is a threaded actor, so these calls are
 served while ``fly()`` runs.
@@ -104,6 +106,7 @@ class DroneActor:
         self._restart_result: FlightResult | None = None
         # Every supervised landing is ordered among the fleet as the driver last told it (fleet_view).
         self._gate = ViewGate(StackGeometry.from_config(cfg), spec.index, self._waits)
+        self._lockstep = not cfg.sim.realtime  # its clock waits for the fleet's view before a descent
         if self._restarted:
             self._restart_result = self._report_restart()
 
@@ -138,10 +141,11 @@ class DroneActor:
         seconds when given (clear of the drones below), until a landing is requested."""
         self._inbox.append(("hold", (reason, to, move_s)))
 
-    def fleet_view(self, positions: list[Any], states: list[str], spots: dict[int, Any]) -> None:
-        """The fleet as the driver knows it now (every drone's position, supervisor state and landing
-        spot, this one's included): what this drone's ordered landings are judged by."""
-        self._gate.update(positions, states, spots)
+    def fleet_view(self, positions: list[Any], states: list[str], spots: dict[int, Any],
+                   times: list[float]) -> None:
+        """The fleet as the driver knows it now (every drone's position, supervisor state, landing spot
+        and flight time, this one's included): what this drone's ordered landings are judged by."""
+        self._gate.update(positions, states, spots, times)
 
     def land_at(self, t: float, reason: str, cause: str) -> None:
         """Land when the drone's own flight time reaches ``t`` (at once if it has)."""
@@ -178,6 +182,7 @@ class DroneActor:
     def _on_tick(self, info: Any) -> None:
         t, sup = float(info.t), self._sup
         state = info.supervisor_state
+        self._gate.at(t)
         while self._inbox:
             kind, args = self._inbox.popleft()
             if kind == "land":
@@ -204,6 +209,8 @@ class DroneActor:
             self._status = dataclasses.replace(self._status, t=t, p=p, state=state, cause=cause,
                                                ticks=self._status.ticks + 1, spot=self._gate.spot_now)
             self._trail.append((t, state, cause, p))
+        if self._lockstep:  # last: the driver has this tick before the loop waits
+            self._gate.catch_up()
 
     # -- after a restart ----------------------------------------------------------------------
 

@@ -12,6 +12,7 @@ every tick; a Ray actor asks it through ``ViewGate`` with the fleet as the drive
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
@@ -25,6 +26,12 @@ FLYING = ("TAKEOFF", "TRACK", "LAND")
 # there first at GLIDE_SPEED: a drone's downwash reaches further down than sideways.
 LANDING_CLEARANCE = 1.5
 GLIDE_SPEED = 0.4  # m/s
+# A Ray actor descends only on a view of the fleet at most this far behind its own flight time: a drone
+# below moves at most GLIDE_SPEED x this (0.1 m) inside the spot's 0.15 m of clearance over the separation.
+VIEW_LAG_S = 0.25
+# Wall seconds a lockstep actor waits for a view that does not move (a drone that started late, or hung until
+# the driver has its ending) before it hovers on in flight time instead: under the loop-stall exit's idle grace.
+SILENT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -93,26 +100,56 @@ class StallHold:
 
 class ViewGate:
     """Drone k's ``LandingGate`` (safety/ordered_landing.py) where the fleet is elsewhere (a Ray actor):
-    ``update`` (any thread) hands it every drone's latest position, supervisor state and landing spot
-    as the driver knows them; ``spot`` and ``blocked`` (the flight's thread) judge by that and the
-    drone's own position. ``spot_now`` is the spot it chose last, which the driver passes on."""
+    ``update`` (any thread) hands it every drone's latest position, supervisor state, landing spot and
+    flight time as the driver knows them; ``spot`` and ``blocked`` (the flight's thread) judge by that
+    and the drone's own position. ``spot_now`` is the spot it chose last, which the driver passes on.
 
-    def __init__(self, geometry: StackGeometry, k: int, note: Callable[[str], None] | None = None) -> None:
-        self._geo, self._k, self._note = geometry, k, note
-        self._lock = threading.Lock()
+    Once the actor tells it its own flight time (``at``), it never lets the drone begin a descent on a
+    view older than ``VIEW_LAG_S`` of that time, or on no view at all: each actor's lockstep clock runs
+    at its own pace, so the driver's newest word on a drone below may be seconds of its flight behind,
+    from before it took off. Then a lockstep actor calls ``catch_up`` after its tick, which holds the
+    loop (and so its simulator) until the view has caught up. On the way down only a flying drone below
+    stops it, as in the one-process fleet, not a late view."""
+
+    def __init__(self, geometry: StackGeometry, k: int, note: Callable[[str], None] | None = None,
+                 wall: Callable[[], float] = time.monotonic) -> None:
+        self._geo, self._k, self._note, self._wall = geometry, k, note, wall
+        self._cond = threading.Condition()
         self._positions: list[Any] = []
         self._states: list[str] = []
         self._spots: dict[int, Any] = {}
+        self._times: list[float] | None = None  # every drone's flight time, as told; None: nothing told yet
+        self._moved = wall()  # when the slowest other drone's told time last moved (wall)
+        self._now: float | None = None  # this drone's own flight time
         self.spot_now: tuple[float, float, float] | None = None
-        self._waiting = False
+        self._waiting = ""  # why it waits to descend ("view", "below" or "")
+        self.caught_up_s = 0.0  # wall seconds its loop has waited for the view, in all
 
-    def update(self, positions: Sequence[Any], states: Sequence[str], spots: Mapping[int, Any]) -> None:
-        with self._lock:
+    def update(self, positions: Sequence[Any], states: Sequence[str], spots: Mapping[int, Any],
+               times: Sequence[float] = ()) -> None:
+        """The fleet as the driver knows it; ``times``: each drone's latest flight time (inf once its
+        flight has ended, 0 before its first tick)."""
+        with self._cond:
+            before = self._slowest()
             self._positions = [None if q is None else np.asarray(q, dtype=float) for q in positions]
             self._states, self._spots = list(states), dict(spots)
+            self._times = [float(t) for t in times]
+            if before is None or self._slowest() > before:
+                self._moved = self._wall()
+            self._cond.notify_all()
+
+    def at(self, t: float) -> None:
+        """This drone's flight time (its latest tick)."""
+        self._now = float(t)
+
+    def _slowest(self) -> float | None:
+        """The slowest other drone's told time (under ``_cond``); None before the first view."""
+        if self._times is None:
+            return None
+        return min((t for j, t in enumerate(self._times) if j != self._k), default=float("inf"))
 
     def _view(self, p: Sequence[float]) -> tuple[list[Any], list[str], dict[int, Any]]:
-        with self._lock:
+        with self._cond:
             positions, states, spots = list(self._positions), list(self._states), dict(self._spots)
         while len(positions) <= self._k:
             positions.append(None)
@@ -120,21 +157,51 @@ class ViewGate:
         positions[self._k] = np.asarray(p, dtype=float)
         return positions, states, spots
 
+    def behind(self) -> str:
+        """Why the view is too old to begin a descent on ("" when it is not)."""
+        now = self._now
+        if now is None:
+            return ""  # not told its own time: judged by the view as it is
+        with self._cond:
+            slowest = self._slowest()
+        if slowest is None:
+            return "no view of the fleet yet"
+        late = now - slowest
+        return f"the fleet's view is {late:.2f} s behind its own flight time" if late > VIEW_LAG_S else ""
+
+    def catch_up(self) -> None:
+        """After a tick, on the loop's thread (lockstep only): while the drone waits to descend on a late
+        view, hold the loop until the view catches up, or has not moved for ``SILENT_S`` (then it hovers
+        on in flight time, asking again each tick)."""
+        if self._waiting != "view" or self._now is None:
+            return
+        start = self._wall()
+        with self._cond:
+            while True:
+                slowest = self._slowest()
+                left = self._moved + SILENT_S - self._wall()
+                if (slowest is not None and self._now - slowest <= VIEW_LAG_S) or left <= 0.0:
+                    break
+                self._cond.wait(timeout=left)
+        self.caught_up_s += self._wall() - start
+
     def spot(self, p: np.ndarray) -> tuple[np.ndarray, float]:
         positions, _, spots = self._view(p)
         spot, move_s = self._geo.spot(self._k, p, positions, spots)
         self.spot_now = tuple(float(v) for v in spot)
         return spot, move_s
 
-    def blocked(self, p: np.ndarray) -> bool:
+    def blocked(self, p: np.ndarray, descending: bool = False) -> bool:
         positions, states, _ = self._view(p)
-        if not self._geo.blocked(self._k, p, positions, states):
-            self._waiting = False
-            return False
-        if not self._waiting and self._note is not None:
-            self._note("waits to land: a flying drone is below it")
-        self._waiting = True
-        return True
+        why = "" if descending else self.behind()
+        kind = "view" if why else ""
+        if not why and self._geo.blocked(self._k, p, positions, states):
+            why, kind = "a flying drone is below it", "below"
+        if kind and kind != self._waiting and self._note is not None:
+            self._note(f"waits to land: {why}")  # once per wait, not every tick
+        self._waiting = kind
+        return bool(kind)
 
 
-__all__ = ["FLYING", "GLIDE_SPEED", "LANDING_CLEARANCE", "StackGeometry", "StallHold", "ViewGate"]
+__all__ = ["FLYING", "GLIDE_SPEED", "LANDING_CLEARANCE", "SILENT_S", "StackGeometry", "StallHold", "VIEW_LAG_S",
+           "ViewGate"]

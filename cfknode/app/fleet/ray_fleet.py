@@ -296,15 +296,17 @@ class Timeline:
 
 
 class FleetView:
-    """Every drone's latest position, supervisor state and landing spot as its actor last reported them
-    (not held back to a common flight time, as the Timeline is: a drone below that is down is down),
-    pushed to every flying actor each poll: what their ordered landings are judged by
-    (landing_order.ViewGate), so a Ray fleet lands a stack bottom-up as the one-process fleet does."""
+    """Every drone's latest position, supervisor state, landing spot and flight time as its actor last
+    reported them (not held back to a common flight time, as the Timeline is: a drone below that is down
+    is down), pushed to every flying actor each poll: what their ordered landings are judged by
+    (landing_order.ViewGate), so a Ray fleet lands a stack bottom-up as the one-process fleet does. The
+    times let an actor that ran ahead wait for the view to catch up before it descends."""
 
     def __init__(self, n: int, coordinator: FleetCoordinator) -> None:
         self._co = coordinator
         self.positions: list[Any] = [None] * n
         self.states = [""] * n
+        self.times = [0.0] * n  # inf once a drone's flight has ended: it holds nobody back
         self._spots: dict[int, Any] = {}
 
     def seen(self, i: int, status: Any) -> None:
@@ -314,9 +316,12 @@ class FleetView:
             self.states[i] = status.state
         if status.spot is not None:
             self._spots[i] = tuple(status.spot)
+        if self.times[i] != float("inf"):
+            self.times[i] = max(self.times[i], float(status.t))
 
     def ended(self, i: int, state: str) -> None:
         self.states[i] = state
+        self.times[i] = float("inf")
 
     def spots(self) -> dict[int, Any]:
         """The spots the actors chose, else the one the driver's coordinator glides a held drone to."""
@@ -327,7 +332,7 @@ class FleetView:
         spots = self.spots()
         for a, on in zip(actors, flying):
             if on:
-                a.fleet_view.remote(list(self.positions), list(self.states), spots)
+                a.fleet_view.remote(list(self.positions), list(self.states), spots, list(self.times))
 
 
 async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink], boxes: Sequence[EstopMailbox],
