@@ -218,6 +218,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_a_bad_resource_name_scheme_is_refused_in_one_line": FAST,
         "test_a_drone_whose_radio_no_node_offers_is_refused_naming_it": FAST,
         "test_each_drone_needs_the_resource_named_for_its_radio": FAST,
+        "test_an_operators_status_call_takes_no_tick_from_the_drivers_separation_watch": FAST,
         "test_the_driver_coordinator_sends_holds_and_timed_landings_to_the_actors": FAST,
         "test_the_drivers_view_tells_every_drones_flight_time_and_an_ended_one_holds_none_back": FAST,
         "test_the_timeline_compares_drones_at_the_same_flight_time_however_far_apart_their_actors_run": FAST,

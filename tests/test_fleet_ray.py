@@ -142,6 +142,22 @@ def test_the_drivers_view_tells_every_drones_flight_time_and_an_ended_one_holds_
     assert told[1][-1][1:] == (["LANDED", ""], {}, [float("inf"), 0.0])
 
 
+def test_an_operators_status_call_takes_no_tick_from_the_drivers_separation_watch():
+    """``ray.get_actor(name).status()`` (an operator, a test) used to take the ticks the driver's report
+    was to carry: the separation watch never saw them."""
+    from collections import deque
+
+    from cfknode.app.fleet.drone_actor import DroneActor, DroneStatus
+
+    actor = DroneActor.__new__(DroneActor)  # its calls alone, without Ray's runtime
+    actor._lock = threading.Lock()
+    actor._status = DroneStatus("cf1", 0.005, (0.0, 0.0, 0.1), "TAKEOFF", "", 2, False, False, "node")
+    actor._trail = deque([(0.0025, "TAKEOFF", "", (0.0, 0.0, 0.1)), (0.005, "TAKEOFF", "", (0.0, 0.0, 0.1))])
+    assert actor.status().t == 0.005 and actor.status().trail == ()
+    assert [tick[0] for tick in actor.report().trail] == [0.0025, 0.005]  # the driver has both
+    assert actor.report().trail == ()  # each tick once
+
+
 @pytest.mark.parametrize("argv, expect", [
     (["--executor", "ray"], "--executor ray flies a fleet (--fleet N, N >= 2); a single flight runs here"),
     (["--fleet", "2", "--address", "127.0.0.1:6379"], "--address needs --executor ray"),

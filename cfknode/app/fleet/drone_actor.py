@@ -72,7 +72,7 @@ class DroneStatus:
     done: bool  # the flight has ended (fly() returned or will at once)
     restarted: bool  # this actor is a restart after its worker died
     node_id: str
-    # Every tick since the previous status() as (t, state, cause, position or None): the driver
+    # Every tick since the previous report() as (t, state, cause, position or None): the driver
     # compares the drones at the same flight time, whatever their actors' pace.
     trail: tuple[tuple[float, str, str, tuple[float, float, float] | None], ...] = ()
     spot: tuple[float, float, float] | None = None  # where its ordered landing descends, once it has chosen
@@ -116,7 +116,13 @@ class DroneActor:
         return self._node_id
 
     def status(self) -> DroneStatus:
-        """The latest tick, and every tick since the previous call (taken: each tick is reported once)."""
+        """The latest tick, for anyone who asks (an operator, a test); its trail is left for the driver."""
+        with self._lock:
+            return self._status
+
+    def report(self) -> DroneStatus:
+        """The driver's poll: the latest tick and every tick since its previous report (taken: each tick
+        reaches the fleet's separation watch once, and a ``status()`` from elsewhere takes none of them)."""
         with self._lock:
             trail, self._trail = tuple(self._trail), deque(maxlen=TRAIL_MAX)
             return dataclasses.replace(self._status, trail=trail)

@@ -9,7 +9,7 @@ What runs where (docs/fleet-ray.md):
   the radio. Nothing is called per tick across the network.
 - **driver** (this module): the pre-flight checks of the one-process fleet (separation,
   radio budget, unflyable configs, the model file), a refusal in one line when no node offers
-  a drone's radio resource, and the fleet supervisor: it polls every actor's ``status()`` at
+  a drone's radio resource, and the fleet supervisor: it polls every actor's ``report()`` at
   ``POLL_HZ`` (each reply carries every tick since the last) and feeds the ticks, in flight-time
   order, to the same ``FleetCoordinator`` (separation watch, ``fleet.on_fault``) the local fleet
   uses; its landings, holds and timed landings go to the actors. The driver keeps
@@ -357,7 +357,7 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
             asked = set(polls.values())
             for i, a in enumerate(actors):
                 if results[i] is None and i not in restart_deadline and i not in asked:
-                    polls[a.status.remote()] = i
+                    polls[a.report.remote()] = i
             ready, _ = ray.wait(list(polls), num_returns=len(polls), timeout=0) if polls else ([], [])
             for ref in ready:
                 i = polls.pop(ref)
@@ -389,7 +389,7 @@ async def _supervise(ray: Any, actors: Sequence[Any], links: Sequence[_DroneLink
                     results[i] = _ended(f"{name}: its flight failed in the actor: {why}", ERROR_CAUSE,
                                         timeline.last_t[i])
                 if i not in restart_deadline:  # the ticks since the last poll (in order), then the ending
-                    last = [r for r, k in polls.items() if k == i] + [actors[i].status.remote()]
+                    last = [r for r, k in polls.items() if k == i] + [actors[i].report.remote()]
                     for r in last:
                         polls.pop(r, None)
                         with contextlib.suppress(Exception):
