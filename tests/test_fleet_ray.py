@@ -313,6 +313,7 @@ def test_a_stacked_ray_fleet_stopped_mid_flight_lands_bottom_up_as_a_local_fleet
         # Stopped mid-flight, not at the mission's end: the stop took before the mission's first landing was due
         # (the upper drone's record ends later: it waits for the lower one, then descends from 1.3 m).
         assert d.outcome.t < first_landing
+        assert d.summary.extra["view_wait_s"] >= 0.0  # how long its loop waited for the view before descending
     assert _airborne_min_separation(result) >= cfg.fleet.min_separation
     ends = [d.record.p[d.record.ticks - 1] for d in result.drones]
     assert np.hypot(*(ends[0][:2] - ends[1][:2])) >= cfg.fleet.min_separation  # side by side on the ground

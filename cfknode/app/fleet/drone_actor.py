@@ -167,8 +167,11 @@ class DroneActor:
         if self._restart_result is not None:
             return self._restart_result
         try:
-            return run_flight(self._cfg, name_hint=self._spec.log_hint, observers=[_Tap(self)],
-                              on_supervisor=self._take_supervisor, trajectory=self._ref, estop=False)
+            flight = run_flight(self._cfg, name_hint=self._spec.log_hint, observers=[_Tap(self)],
+                                on_supervisor=self._take_supervisor, trajectory=self._ref, estop=False)
+            # Wall seconds its loop waited for the fleet's view before a descent (ViewGate.catch_up).
+            extra = {**flight.summary.extra, "view_wait_s": round(self._gate.caught_up_s, 3)}
+            return dataclasses.replace(flight, summary=dataclasses.replace(flight.summary, extra=extra))
         finally:
             with self._lock:
                 self._status = dataclasses.replace(self._status, done=True)

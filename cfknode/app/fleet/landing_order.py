@@ -30,7 +30,7 @@ GLIDE_SPEED = 0.4  # m/s
 # below moves at most GLIDE_SPEED x this (0.1 m) inside the spot's 0.15 m of clearance over the separation.
 VIEW_LAG_S = 0.25
 # Wall seconds a lockstep actor waits for a view that does not move (a drone that started late, or hung until
-# the driver has its ending) before it hovers on in flight time instead: under the loop-stall exit's idle grace.
+# the driver has its ending) before it hovers on in flight time instead: a silent drone never holds it for long.
 SILENT_S = 5.0
 
 
