@@ -207,6 +207,21 @@ def test_a_fleet_of_two_flies_lands_and_logs_each_drone_under_its_name(tmp_path)
     assert not list((tmp_path / "estop").glob("flight-*"))  # every drone's mailbox entry removed
 
 
+def test_each_drone_of_a_ring_flies_as_it_would_alone_with_its_accelerometer(tmp_path):
+    """A fleet drone's link and loop are a single flight's (the accelerometer log too: before, a fleet's drones
+    flew without it, and their fast layers and learners never saw a sample). Far apart, no wake reaches either,
+    so each flies the very flight it would fly alone on its placed reference."""
+    from cfknode.app.mission import run_flight
+
+    cfg = fleet_cfg(tmp_path)
+    result = run_fleet(cfg)
+    names, configs, refs = drone_configs(cfg)
+    for d, c, ref in zip(result.drones, configs, refs):
+        alone = run_flight(c, name_hint=f"alone-{d.name}", trajectory=ref, estop=False)
+        assert d.summary.extra["imu_samples"] > 0 and d.summary.extra["imu_late"] == 0
+        assert d.summary.mse == alone.summary.mse, (d.name, d.summary.mse, alone.summary.mse)
+
+
 def test_a_fault_in_one_drone_lands_the_others_with_land_all(tmp_path):
     cfg = fleet_cfg(tmp_path, **{"faults.mocap_outages": [{"t": 2.5, "duration": 1.0}]})
     result = run_fleet(cfg)

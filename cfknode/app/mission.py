@@ -356,7 +356,7 @@ def _fly_session(sess: Backend, request: _Request, kit: _Kit) -> FlightResult:
                     # The loop thread's CPU time: with trainer_cpu_s (online), who used the cores.
                     "loop_cpu_s": round(record.loop_cpu_s, 3),
                     "mocap_dropouts": sess.mocap.stats().dropouts,
-                    **_imu_fields(sess.radio, parts.imu is not None),
+                    **imu_fields(sess.radio, parts.imu is not None),
                     **record.adaptation,
                     **(online.summary_fields() if online is not None else {}),
                     **keep_learned_model(online, flight_log.path),
@@ -416,7 +416,7 @@ def foxglove_view(flight_log: FlightLog, cfg: Config, trajectory: Any, live: Any
     return FoxgloveView(flight_log, sinks, {cfg.hardware.robot: drawing})
 
 
-def _imu_fields(radio: Any, flown: bool) -> dict[str, Any]:
+def imu_fields(radio: Any, flown: bool) -> dict[str, Any]:
     """The accelerometer block's counts for the summary, when the flight had one (lockstep: samples waited out)."""
     if not flown or not hasattr(radio, "stats"):
         return {}

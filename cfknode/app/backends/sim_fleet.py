@@ -17,8 +17,8 @@ import dataclasses
 from typing import Any, Iterator, Sequence
 
 
-from cfknode.app.backends.radio import CflibRadio
-from cfknode.app.backends.sim import SimulatorBackend, vehicle_after
+from cfknode.app.backends.radio import CflibRadio, LinkSafety
+from cfknode.app.backends.sim import SimulatorBackend, stale_policy, vehicle_after
 from cfknode.app.config import Config, ConfigError
 from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.kernel.fleet_clock import FleetClock, MemberClock
@@ -82,8 +82,11 @@ class FleetSimBackend:
             drones = []
             for name, sim, c, f, mocap in zip(names, sims, configs, faults, mocaps):
                 member = fleet_clock.member()
+                # Each drone's link as a single flight's: its accelerometer log too (radio.imu_log), which the
+                # fast layer's step detector and the learner read.
                 radio = CflibRadio(c.radio.uri, tx_rate_hz=c.radio.tx_rate_hz, lockstep=True, clock=member.now,
-                                   advance=world.step_to, rw_cache=str(default_cache_dir() / "cflib"))
+                                   advance=world.step_to, rw_cache=str(default_cache_dir() / "cflib"),
+                                   imu_log=c.radio.imu_log, safety=LinkSafety(stale=stale_policy(c)))
                 radios.append(radio)
                 radio.connect()
                 drones.append(FleetDrone(name, c, sim, f, mocap, member, radio))

@@ -48,7 +48,7 @@ from cfknode.app.learning import attitude_lag_identifier, check_online, keep_lea
 from cfknode.app.logs.format import CHANNELS, ChannelSpec
 from cfknode.app.logs.writer import FlightLog
 from cfknode.app.mission import (_controller_label, air_model_observers, build_controller, build_model_slot,
-                                 build_supervisor)
+                                 build_supervisor, imu_fields)
 from cfknode.app.radio_budget import LinkLoad, check_radio_budget
 from cfknode.app.stall_exit import LoopProgress, stall_exit
 from cfknode.app.trajectory_fit import fence_problem
@@ -349,6 +349,7 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
         taps = [flying.board.tap(i)] if flying.board is not None else []
         parts.append(FlightParts(clock=d.clock, mocap=d.mocap, estimator=estimator,
                                  trajectory=ref, controller=controller, supervisor=sup, log=log, truth=d.truth,
+                                 imu=getattr(d, "imu", None),  # its accelerometer, as a single flight's
                                  observers=[coordinator.tap(i), *taps, *d.fault_observers(model),
                                             *air_model_observers(d.config, model)], estop=box,
                                  signals=False))
@@ -361,7 +362,7 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
         records = run_loop(_gather(drones, parts, coordinator))
     after = handback()
     results = []
-    for name, d, rec, sup, ref, learner, extra in zip(names, drones, records, sups, refs, learners, after):
+    for name, d, p, rec, sup, ref, learner, extra in zip(names, drones, parts, records, sups, refs, learners, after):
         outcome = sup.outcome()
         online = {} if learner is None else {**learner.summary_fields(), **keep_learned_model(learner, flog.path, name)}
         summary = compute_summary(
@@ -369,8 +370,8 @@ def _fly_drones(cfg: Config, flying: _Flying, handback: Callable[[], Sequence[di
             extra={"drone": name, "uri": d.config.radio.uri, "outcome": outcome.message,
                    "safety_state": outcome.state.value, "safety_cause": outcome.cause, "fallback_ticks": rec.fallbacks,
                    "controller": _controller_label(cfg, bool(cfg.controller.model), learner is not None),
-                   "backend": d.config.backend, "lockstep": bool(d.clock.lockstep), **extra, **rec.adaptation,
-                   **online})
+                   "backend": d.config.backend, "lockstep": bool(d.clock.lockstep),
+                   **imu_fields(d.radio, p.imu is not None), **extra, **rec.adaptation, **online})
         flog.write(f"/{name}/summary", rec.t[-1] if rec.ticks else 0.0, summary.to_dict())
         results.append(DroneResult(name, d.config.radio.uri, summary, rec, outcome, learner))
     return results
