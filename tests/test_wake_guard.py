@@ -1,4 +1,4 @@
-"""Under another drone's wake the fast layer calls no heavier step (flight/adaptation/wake_guard.py)."""
+"""Under another drone's wake the fast layer calls no heavier step and learns no motor lag (wake_guard.py)."""
 
 from __future__ import annotations
 
@@ -186,3 +186,29 @@ def test_a_fleet_shares_its_positions_with_the_layers_unless_the_guard_is_off() 
     assert neighbour_board(on, refs[:1], [None]) is None  # alone: no drone above
     assert neighbour_board(off, refs, [None, None]) is None
     assert neighbour_board(load_config(overrides={"controller.adaptation": "none"}), refs, [None, None]) is None
+
+
+def _chosen_lag(log_dir: Path, drone: str = "cf1") -> float:
+    from cfknode.app.logs.fleet_log import drone_log
+    from cfknode.app.logs.reader import read_log
+
+    (path,) = log_dir.glob("*.mcap")
+    summary = drone_log(read_log(str(path)), drone).topic("/summary")[0]
+    return float(summary.get("extra", summary)["adaptation_thrust_lag_s"])
+
+
+def test_stacked_under_another_drone_the_layer_takes_no_wake_for_the_motors_lag(tmp_path: Path) -> None:
+    """With its accelerometer, the lower drone of a stack took the drone above's push for the longest motor lag
+    (150 ms, against the vehicle's 15 ms) and flew 1.13-1.36x the error of the same layer without it."""
+    from cfknode.app.bench.learning import Job, run_job
+    from cfknode.app.bench.learning_cells import CELLS
+
+    cell = next(c for c in CELLS if c.name.startswith("stacked pair"))
+    lags, runs = {}, {}
+    for name, radius in (("guard", 0.15), ("off", 0.0)):
+        extra = (("controller.adaptation_settings.wake_radius", radius), ("safety.estop_dir", str(tmp_path / "e")))
+        runs[name] = run_job(Job(cell, "layer", 0, str(tmp_path / name), 4.0, extra, 0.1))
+        lags[name] = _chosen_lag(tmp_path / name)
+        assert not runs[name].fell and not runs[name].tripped, runs[name].outcome
+    assert lags["off"] > 0.1 and lags["guard"] < 0.05, lags
+    assert runs["guard"].mse < runs["off"].mse, (runs["guard"].mse, runs["off"].mse)

@@ -119,17 +119,21 @@ class LoopAdaptation:
         u_flown = self.flown_acc(bz)
         coeffs = self.coefficients
         predicted = self._r if coeffs is None else coeffs.prediction(self._r)
+        seen = getattr(model, "last_neighbour", None)
+        above = seen if seen is not None or self.neighbour is None else self.neighbour.above(est.p)
+        # Under another drone's wake, or just past one, its push would pass for the motors' lag (the longest fits it
+        # best): not learned then, from the frames, the samples or a step's fit.
+        e, wake = self.layer.estimate, self.layer.wake
+        in_wake = wake.reaches(est.p, above) or wake.held(now)
+        learn_lag = not (e.stepping or self._sat[0] or in_wake)
         if airborne:  # the lag bank learns from the same frames as the layer
-            e = self.layer.estimate
             self.lags.observe(est.v.item(2), bz[2], self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
-                              predicted.item(2) + e.offset.item(2), pose_fresh, learn=not (e.stepping or self._sat[0]))
+                              predicted.item(2) + e.offset.item(2), pose_fresh, learn=learn_lag)
         else:
             self.lags.forget_velocity()
         by_lag = self.lags.acting_scaled(bz[2], self.vehicle.mass)
-        imu = self._imu_theta(now, est) if airborne else None
+        imu = self._imu_theta(now, est, learn_lag) if airborne else None
         fast = self._accel_part(now, est, airborne, predicted)
-        seen = getattr(model, "last_neighbour", None)
-        above = seen if seen is not None or self.neighbour is None else self.neighbour.above(est.p)
         extras = LoopExtras(u_commanded=self._u, thrust_by_lag=by_lag, lag=self.lags.choice, imu_theta=imu,
                             accel_part=fast, neighbour=seen, above=above)
         self.layer.update(now, est.v, x, u_flown, u_flown + predicted, self._sat, pose_fresh and airborne, extras)
@@ -138,7 +142,7 @@ class LoopAdaptation:
             shift = coeffs.tick(self._r, self.layer.sigma, self.layer.omega, self.layer.dt,
                                 learn=not (e.stepping or e.saturated), steady=state == "TRACK")
             self.layer.reexpress(shift)
-        if self.layer.fit_lag is not None:  # a step's fit is the lag's strongest evidence
+        if self.layer.fit_lag is not None and not in_wake:  # a step's fit is the lag's strongest evidence
             self.lags.choose(self.layer.fit_lag)
         self._count(now)
         return self.layer.applied
@@ -151,9 +155,10 @@ class LoopAdaptation:
         self.frozen_ticks += int(e.frozen)
         self.longest_step_s = max(self.longest_step_s, self.layer.tracker.tracked_s(now))
 
-    def _imu_theta(self, now: float, est: Any) -> tuple[float, float] | None:
+    def _imu_theta(self, now: float, est: Any, learn_lag: bool) -> tuple[float, float] | None:
         """(time, theta) of an accelerometer sample new since the last tick: the specific force along the body
-        axis over the thrust acting when it was measured, per nominal mass. None without a new sample."""
+        axis over the thrust acting when it was measured, per nominal mass. None without a new sample. The lag
+        bank learns from the sample when ``learn_lag``."""
         acting = self.lags.acting()
         if acting is not None:
             self._acting_recent.append((now, acting))
@@ -166,7 +171,7 @@ class LoopAdaptation:
             return None
         e = self.layer.estimate
         self.lags.observe_specific_force(float(imu.specific_force[2]), 1.0 / e.thrust_scale, self.vehicle.mass,
-                                         learn=not (e.stepping or self._sat[0]))
+                                         learn=learn_lag)
         return imu.t, self._theta(imu, thrust)
 
     def needs_sample_now(self, now: float, est: Any) -> bool:

@@ -10,6 +10,10 @@ passes under another within ``radius`` horizontally (their horizontal distance c
 the vehicle heavier is called. A lighter one (leaving a wake) still is, and so is a heavier one while the drone
 is under another and not passing: one that flies into a wake and stops there, or flies stacked under another,
 carries that force for seconds, as it would a payload.
+
+Nor is it the motors' lag: the layer's lag bank (thrust_lag.py) took a wake's push, met with more thrust, for the
+longest lag (150 ms against the vehicle's 15 ms) once the accelerometer fed it. So no lag is learned while the drone
+is under another within ``radius`` and the reach (passing or not: ``reaches``), nor for ``HOLD_S`` after a pass.
 """
 
 from __future__ import annotations
@@ -48,15 +52,26 @@ class WakeGuard:
         if self.radius > 0.0 and p is not None and above is not None:
             dx, dy = float(above[0]) - float(p[0]), float(above[1]) - float(p[1])
             self._measure(t, dx, dy)
-            dz = float(above[2]) - float(p[2])
-            under = 0.0 < dz < REACH_M and math.hypot(dx, dy) < self.radius
+            under = self.reaches(p, above)
             # Two thresholds: a slow pass's measured speed dips around PASS_SPEED, and one dip ended the hold.
             self._passing = under and self.speed > (STOP_SPEED if self._passing else PASS_SPEED)
             if self._passing:
                 self._under_t = t
             elif under:  # arrived (or stopped) under it: the wake lasts, as a payload does
                 self._under_t = -math.inf
+        return self.held(t)
+
+    def held(self, t: float) -> bool:
+        """Whether a pass under a wake was seen within ``HOLD_S`` of ``t`` (as ``update`` last found)."""
         return t - self._under_t < HOLD_S
+
+    def reaches(self, p: np.ndarray | None, above: np.ndarray | None) -> bool:
+        """Whether ``p`` is under ``above`` within the wake's reach, passing or not (False with either unknown, or the
+        guard off): where the motors' lag is not learned either, whose evidence a wake's push would fake."""
+        if self.radius <= 0.0 or p is None or above is None:
+            return False
+        dx, dy, dz = (float(above[k]) - float(p[k]) for k in range(3))
+        return 0.0 < dz < REACH_M and math.hypot(dx, dy) < self.radius
 
     def _measure(self, t: float, dx: float, dy: float) -> None:
         """The horizontal relative speed over the last ``SPEED_SPAN_S``."""
