@@ -9,7 +9,7 @@ simulator) or the wall clock (``--realtime``); configured faults are installed a
 from __future__ import annotations
 
 import contextlib
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -51,17 +51,8 @@ class SimulatorBackend:
         mocap = SimulatedMocap.from_config(sim, cfg.sim, outages=faults.mocap_outages)
         register_simulator(cfg.radio.uri, sim)
         clock: WallClock | SimClock = WallClock() if cfg.sim.realtime else SimClock(sim)
-        radio = CflibRadio(
-            cfg.radio.uri,
-            tx_rate_hz=cfg.radio.tx_rate_hz,
-            lockstep=clock.lockstep,
-            clock=clock.now,
-            # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.
-            advance=sim.step_to if clock.lockstep else None,
-            rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
-            imu_log=cfg.radio.imu_log,
-            safety=LinkSafety(stale=stale_policy(cfg)),
-        )
+        # In lockstep the shutdown's zero stream must span simulated time, so the radio steps the sim.
+        radio = sim_radio(cfg, clock.now, sim.step_to if clock.lockstep else None)
         stepper = None
         try:
             radio.connect()
@@ -98,6 +89,21 @@ class SimulatorBackend:
                 "vehicle_after_shutdown": vehicle_after(self.sim)}
 
 
+def sim_radio(cfg: Config, clock: Callable[[], float], advance: Callable[[float], None] | None) -> CflibRadio:
+    """A simulated drone's link, the stock cflib path as on hardware: lockstep when given ``advance`` (what steps
+    its simulator, or a fleet's world); one builder, so a single flight's and a fleet drone's links stay alike."""
+    return CflibRadio(
+        cfg.radio.uri,
+        tx_rate_hz=cfg.radio.tx_rate_hz,
+        lockstep=advance is not None,
+        clock=clock,
+        advance=advance,
+        rw_cache=str(default_cache_dir() / "cflib"),  # TOC cache, as on hardware
+        imu_log=cfg.radio.imu_log,
+        safety=LinkSafety(stale=stale_policy(cfg)),
+    )
+
+
 def stale_policy(cfg: Config) -> StalePolicy:
     """When the radio takes a setpoint for stale (threaded radios: the loop stalled)."""
     return StalePolicy(cfg.radio.stale_hold_slots, cfg.radio.stale_stop_s)
@@ -123,4 +129,4 @@ def firmware_after_handback(sim: SimCrazyflie, lockstep: bool) -> str:
     return sim.firmware.supervisor_state
 
 
-__all__ = ["SimulatorBackend", "firmware_after_handback", "stale_policy", "vehicle_after"]
+__all__ = ["SimulatorBackend", "firmware_after_handback", "sim_radio", "stale_policy", "vehicle_after"]

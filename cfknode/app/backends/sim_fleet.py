@@ -17,10 +17,9 @@ import dataclasses
 from typing import Any, Iterator, Sequence
 
 
-from cfknode.app.backends.radio import CflibRadio, LinkSafety
-from cfknode.app.backends.sim import SimulatorBackend, stale_policy, vehicle_after
+from cfknode.app.backends.radio import CflibRadio
+from cfknode.app.backends.sim import SimulatorBackend, sim_radio, vehicle_after
 from cfknode.app.config import Config, ConfigError
-from cfknode.flight.mpc_codegen import default_cache_dir
 from cfknode.kernel.fleet_clock import FleetClock, MemberClock
 from cfknode.mocap.simulated import SimulatedMocap
 from cfknode.sim_backend.crazyflie import SimCrazyflie
@@ -82,11 +81,7 @@ class FleetSimBackend:
             drones = []
             for name, sim, c, f, mocap in zip(names, sims, configs, faults, mocaps):
                 member = fleet_clock.member()
-                # Each drone's link as a single flight's: its accelerometer log too (radio.imu_log), which the
-                # fast layer's step detector and the learner read.
-                radio = CflibRadio(c.radio.uri, tx_rate_hz=c.radio.tx_rate_hz, lockstep=True, clock=member.now,
-                                   advance=world.step_to, rw_cache=str(default_cache_dir() / "cflib"),
-                                   imu_log=c.radio.imu_log, safety=LinkSafety(stale=stale_policy(c)))
+                radio = sim_radio(c, member.now, world.step_to)  # as a single flight's, its accelerometer log too
                 radios.append(radio)
                 radio.connect()
                 drones.append(FleetDrone(name, c, sim, f, mocap, member, radio))
