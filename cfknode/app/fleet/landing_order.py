@@ -157,16 +157,19 @@ class ViewGate:
         positions[self._k] = np.asarray(p, dtype=float)
         return positions, states, spots
 
+    def _late(self) -> float | None:
+        """How far the view is behind this drone's own flight time (under ``_cond``); None with no view yet."""
+        slowest = self._slowest()
+        return None if slowest is None or self._now is None else self._now - slowest
+
     def behind(self) -> str:
         """Why the view is too old to begin a descent on ("" when it is not)."""
-        now = self._now
-        if now is None:
+        if self._now is None:
             return ""  # not told its own time: judged by the view as it is
         with self._cond:
-            slowest = self._slowest()
-        if slowest is None:
+            late = self._late()
+        if late is None:
             return "no view of the fleet yet"
-        late = now - slowest
         return f"the fleet's view is {late:.2f} s behind its own flight time" if late > VIEW_LAG_S else ""
 
     def catch_up(self) -> None:
@@ -178,9 +181,8 @@ class ViewGate:
         start = self._wall()
         with self._cond:
             while True:
-                slowest = self._slowest()
-                left = self._moved + SILENT_S - self._wall()
-                if (slowest is not None and self._now - slowest <= VIEW_LAG_S) or left <= 0.0:
+                late, left = self._late(), self._moved + SILENT_S - self._wall()
+                if (late is not None and late <= VIEW_LAG_S) or left <= 0.0:
                     break
                 self._cond.wait(timeout=left)
         self.caught_up_s += self._wall() - start
