@@ -26,6 +26,8 @@ _uris = itertools.count(9800, 2)  # even: the two robots share one simulated rad
 BLOCK_AT = 2.0  # s of flight time: mid-pattern, cf2 right above cf1
 BLOCK_S = 0.9  # wall: past the hold (4 TX slots), short of the stop (radio.stale_stop_s 1.9 here)
 HELD = (0.2, 0.6)  # s after the block began (simulated): both radios hold by then, and still do
+# ... and before it ended: each simulator steps to the wall clock from its own thread, and on a loaded host it can
+# lag the wall by a few tenths of a second, so the loop's first setpoints after the block can land inside HELD.
 
 
 @dataclass
@@ -35,6 +37,8 @@ class _Stall:
 
     uris: list[str]
     t0: float = float("nan")  # simulated time when the block began
+    t0s: list[float] = field(default_factory=list)  # each simulator's time when the block began ...
+    t1s: list[float] = field(default_factory=list)  # ... and when it ended, before the loops sent anything again
     blind: list[int] = field(default_factory=lambda: [0, 0])  # each supervisor's blind (descending) thrust
     hover: list[int] = field(default_factory=lambda: [0, 0])  # each drone's hover thrust, as its flight stack believes
     samples: list[list[tuple[float, float, Any]]] = field(default_factory=lambda: [[], []])
@@ -54,8 +58,10 @@ class _Stall:
                         sim.add_step_observer(lambda t, s, k=k, sim=sim: stall.samples[k].append(
                             (t, float(s[2]), sim.firmware.active_setpoint)))
                 if i == 0 and info.t >= BLOCK_AT and np.isnan(stall.t0):
-                    stall.t0 = stall._sims[0].t
+                    stall.t0s = [sim.t for sim in stall._sims]
+                    stall.t0 = stall.t0s[0]
                     time.sleep(BLOCK_S)  # the loops' one thread is stuck here: no drone's loop runs
+                    stall.t1s = [sim.t for sim in stall._sims]
 
         return [_Tap()]
 
@@ -70,9 +76,10 @@ def test_a_stalled_stack_holds_the_upper_drone_level_and_lets_the_lowest_descend
     result = run_robot_fleet(cfg, ["cf1", "cf2"], name_hint="stall-stack", dashboard=stall)
     t0 = stall.t0
     assert not np.isnan(t0), [d.outcome.message for d in result.drones]
-    at_block = [next(s for s in samples if s[0] >= t0) for samples in stall.samples]
+    at_block = [next(s for s in samples if s[0] >= a) for samples, a in zip(stall.samples, stall.t0s)]
     assert at_block[1][1] - at_block[0][1] > 0.4, at_block  # cf2 right above cf1 when the loop stopped
-    held = [[s for s in samples if t0 + HELD[0] <= s[0] <= t0 + HELD[1]] for samples in stall.samples]
+    held = [[s for s in samples if a + HELD[0] <= s[0] <= a + HELD[1] and s[0] < b]
+            for samples, a, b in zip(stall.samples, stall.t0s, stall.t1s)]
     assert all(len(h) > 50 for h in held)  # recorded every plant step
     for k, h in enumerate(held):
         for _, _, sp in h:
@@ -82,7 +89,8 @@ def test_a_stalled_stack_holds_the_upper_drone_level_and_lets_the_lowest_descend
     assert all(sp.thrust <= stall.blind[0] for _, _, sp in held[0])
     # "Last asked for": the radio's last fresh command, one of cf2's commands around the block (which tick was
     # the last to go out before the thread stopped is the wall clock's, not the test's).
-    asked = {sp.thrust for t, _, sp in stall.samples[1] if t0 - 0.1 <= t <= t0 + HELD[0] and (sp.roll, sp.pitch) != (0.0, 0.0)}
+    a = stall.t0s[1]
+    asked = {sp.thrust for t, _, sp in stall.samples[1] if a - 0.1 <= t <= a + HELD[0] and (sp.roll, sp.pitch) != (0.0, 0.0)}
     hover = stall.hover[1]
     holds = {sp.thrust for _, _, sp in held[1]}
     assert len(holds) == 1 and holds.pop() in {min(c, hover) for c in asked} and all(
