@@ -19,7 +19,9 @@ from cfknode.flight.latency import CommandDelayPredictor
 from cfknode.flight.learning.attitude_lag import (
     MIN_KEPT, AttitudeLagIdentifier, AttitudeLagSettings, fit_lag, lagged, sent_body_z,
 )
+from cfknode.flight.adaptation.loop import body_z_floats
 from cfknode.flight.mellinger import force_to_setpoint
+from cfknode.models.quadrotor import euler_zyx_to_quat, quat_to_euler_zyx
 
 DT = 0.0025
 G = 9.81
@@ -58,6 +60,18 @@ def test_the_attitude_sent_is_read_back_as_the_force_s_direction(force: tuple, y
     sp = force_to_setpoint(force, yaw, q, vehicle, controller)
     n = np.asarray(force) / np.linalg.norm(force)
     assert sent_body_z(sp.roll_deg, sp.pitch_deg, q) == pytest.approx((n[0], n[1]), abs=1e-9)
+
+
+def test_the_attitude_sent_is_the_rotation_s_body_z_at_any_yaw_and_tilt() -> None:
+    # sent_body_z is a closed form: against the quaternion of the same roll, pitch and measured yaw.
+    rng = np.random.default_rng(4)
+    for _ in range(500):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        roll, pitch = rng.uniform(-60.0, 60.0, 2)
+        yaw = quat_to_euler_zyx(q)[2]
+        want = body_z_floats(euler_zyx_to_quat(math.radians(roll), math.radians(pitch), yaw))
+        assert sent_body_z(roll, pitch, q) == pytest.approx(want[:2], abs=1e-12)
 
 
 def _attitude(zx: float, zy: float) -> tuple[float, float, float, float]:
