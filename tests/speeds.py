@@ -384,6 +384,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "test_renormalise_keeps_the_function": FAST,
         "test_trainers_are_spawned_where_forking_is_not_safe": FAST,
         "test_a_trainer_that_cannot_re_import_a_script_read_from_stdin_says_so": FAST,
+        "test_an_idle_trainer_s_pipe_is_read_every_so_many_polls_and_its_death_is_still_found": FAST,
     },
     "test_oracle.py": {
         "*": FLIES,

@@ -201,3 +201,55 @@ def _wait(client: TrainerClient) -> TrainOutcome | TrainerFault | TrainerReady |
         if event is not None:
             return event
     return None
+
+
+class _Conn:
+    """The flight's end of a trainer's pipe, counting the reads (``poll``) that reach it."""
+
+    def __init__(self, conn) -> None:
+        self.conn, self.reads = conn, 0
+
+    def poll(self, timeout: float | None = None) -> bool:
+        self.reads += 1
+        return self.conn.poll(timeout) if timeout else self.conn.poll()
+
+    def recv(self):
+        return self.conn.recv()
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class _DeadChild:
+    exitcode = -9
+
+    def is_alive(self) -> bool:
+        return False
+
+    def join(self, timeout: float | None = None) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def test_an_idle_trainer_s_pipe_is_read_every_so_many_polls_and_its_death_is_still_found(settings) -> None:
+    client = TrainerClient(settings, 5.0)
+    ours, theirs = multiprocessing.Pipe()
+    conn = _Conn(ours)
+    client._conn, client._proc, client.state = conn, _DeadChild(), "idle"
+    every = trainer_client.IDLE_READ_EVERY
+    assert all(client.poll() is None for _ in range(2 * every))
+    assert conn.reads == 2  # a system call every so many ticks, not at each
+    client.state = "busy"  # a round out: its result is read at the first poll after it comes
+    client.sent_wall = client._wall()
+    theirs.send(None)
+    assert client.poll() is None and conn.reads == 3  # the message was read (None: not a result)
+    client.state = "idle"
+    theirs.close()  # the trainer died while idle: its end of the pipe is gone
+    for n in range(1, every + 1):
+        fault = client.poll()
+        if fault is not None:
+            break
+    assert isinstance(fault, TrainerFault) and fault.kind == "crash" and "code -9" in fault.reason and n <= every
+    assert client.state == "stopped"

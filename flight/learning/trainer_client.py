@@ -28,6 +28,11 @@ from cfknode.models.trainer_process import (
     trainer_main,
 )
 
+# An idle trainer sends nothing until it is asked, but its death (an EOF): a poll that may not wait reads the pipe
+# only every this many calls while idle (0.1 s of a 400 Hz loop). Each read is a system call that cost a real-time
+# flight's thread 25-35 us a tick (docs/results.md); a dead trainer is still found then, or at the next send.
+IDLE_READ_EVERY = 40
+
 
 @dataclass(frozen=True)
 class TrainerFault:
@@ -69,6 +74,7 @@ class TrainerClient:
         self.ready: TrainerReady | None = None  # the running trainer's report: its niceness and threads
         self.start_problem = ""  # why the last wait_ready failed, one line
         self.tagged = False  # a shared trainer's protocol (trainer_main's ``tagged``)
+        self._idle_polls = 0  # polls since the pipe was last read while idle (IDLE_READ_EVERY)
 
     def start(self) -> None:
         """Start a trainer (non-blocking: it reports ``TrainerReady`` when torch is up)."""
@@ -147,9 +153,15 @@ class TrainerClient:
             pass
 
     def poll(self, timeout: float = 0.0) -> TrainOutcome | JobOutcome | TrainerReady | TrainerFault | None:
-        """The trainer's next message, or a fault; waits up to ``timeout`` s (0: never blocks)."""
+        """The trainer's next message, or a fault; waits up to ``timeout`` s (0: never blocks; while idle it reads
+        the pipe only every ``IDLE_READ_EVERY``-th such call)."""
         if self.state in ("stopped",):
             return None
+        if self.state == "idle" and timeout <= 0.0:
+            self._idle_polls += 1
+            if self._idle_polls < IDLE_READ_EVERY:
+                return None
+        self._idle_polls = 0
         deadline = self._deadline()
         if deadline is not None:
             timeout = min(timeout, max(0.0, deadline - self._wall()))  # never wait past the hang deadline
@@ -186,7 +198,8 @@ class TrainerClient:
         return None
 
     def kill(self) -> None:
-        """Kill the trainer at once (fault injection; the next ``poll`` reports the crash)."""
+        """Kill the trainer at once (fault injection): the next ``poll`` reports the crash, or while idle the next
+        that reads the pipe (``IDLE_READ_EVERY``), or the next send."""
         if self._proc is not None and self._proc.is_alive():
             self._proc.kill()
 
