@@ -549,6 +549,7 @@ SPEEDS: dict[str, Marks | Mapping[str, Marks]] = {
         "*": FAST,
         "test_crossing_under_a_hovering_drone_the_layer_takes_no_pass_for_a_heavier_vehicle": FLIES,
         "test_stacked_under_another_drone_the_layer_takes_no_wake_for_the_motors_lag": FLIES,
+        "test_crossing_under_a_hovering_drone_a_step_begun_in_its_wake_is_not_the_motors_lag": FLIES,
     },
     "test_wake_below.py": FAST,
     "test_wake_only.py": {

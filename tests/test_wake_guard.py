@@ -12,7 +12,7 @@ import pytest
 from cfknode.app.config import load_config
 from cfknode.flight.adaptation import FastAdaptation, settings_from_controller
 from cfknode.flight.adaptation.layer import LoopExtras
-from cfknode.flight.adaptation.wake_guard import HOLD_S, PASS_SPEED, REACH_M, STOP_SPEED, WakeGuard
+from cfknode.flight.adaptation.wake_guard import HOLD_S, LAG_HOLD_S, PASS_SPEED, REACH_M, STOP_SPEED, WakeGuard
 
 G = 9.81
 RATE = 400.0
@@ -39,6 +39,8 @@ def test_the_guard_holds_while_passing_under_the_drone_above_and_for_its_hold_af
     assert not held[t < 0.15].any() and held[(t > 0.2) & (t < 0.45 + 0.9 * HOLD_S)].all()
     assert g.speed == pytest.approx(1.0, rel=0.05)
     assert not g.update(0.45 + 1.1 * HOLD_S, HOVER, ASIDE)
+    # The motors' lag waits longer after a pass than the steps do (the layer's answer to the wake lasts).
+    assert g.held(0.45 + 0.9 * LAG_HOLD_S, LAG_HOLD_S) and not g.held(0.45 + 1.1 * LAG_HOLD_S, LAG_HOLD_S)
     assert any(_pass(WakeGuard(0.15), 1.0, dz=0.5))  # 0.5 m above
 
 
@@ -212,3 +214,20 @@ def test_stacked_under_another_drone_the_layer_takes_no_wake_for_the_motors_lag(
         assert not runs[name].fell and not runs[name].tripped, runs[name].outcome
     assert lags["off"] > 0.1 and lags["guard"] < 0.05, lags
     assert runs["guard"].mse < runs["off"].mse, (runs["guard"].mse, runs["off"].mse)
+
+
+def test_crossing_under_a_hovering_drone_a_step_begun_in_its_wake_is_not_the_motors_lag(tmp_path: Path) -> None:
+    """A step the layer called as the drone left the wake (within its hold) was fitted after the hold ended; the
+    wake's departure in those frames passed for the longest motor lag (150 ms, the vehicle's is 15 ms)."""
+    from cfknode.app.bench.learning import Job, run_job
+    from cfknode.app.bench.learning_cells import CELLS
+
+    cell = next(c for c in CELLS if c.name == "crossing dz=0.3 v=0.5")  # seed 1: it ended on 150 ms before
+    lags, runs = {}, {}
+    for name, radius in (("guard", 0.15), ("off", 0.0)):
+        extra = (("controller.adaptation_settings.wake_radius", radius), ("safety.estop_dir", str(tmp_path / "e")))
+        runs[name] = run_job(Job(cell, "layer", 1, str(tmp_path / name), cell.duration, extra, 0.1))
+        lags[name] = _chosen_lag(tmp_path / name)
+        assert not runs[name].fell and not runs[name].tripped, runs[name].outcome
+    # Off, every step's fit is the lag's evidence, the passes' too: this flight's fits chose the longest.
+    assert lags["off"] > 0.1 and lags["guard"] < 0.05, lags

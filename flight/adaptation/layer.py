@@ -131,7 +131,7 @@ class FastAdaptation:
         self._onset_hint: float | None = None  # s, the frame before the alarm's run began
         self._fitted: tuple[float, float, bool] | None = None  # (thrust scale, vertical offset, significant)
         self._fitting = False  # heights are given: steps are fitted
-        self.fit_lag: int | None = None  # the motor lag (an index of ``thrust_by_lag``) the last significant fit chose
+        self.fit_lag: tuple[int, float] | None = None  # (an index of ``thrust_by_lag``, onset s) the last significant fit chose
         self._imu.reset()
         self._imu_step = False  # the step being tracked was raised by the accelerometer
         self._imu_sigma = 0.0  # the vertical offset when it was
@@ -341,7 +341,7 @@ class FastAdaptation:
             if got is not None:
                 self._fitted = (float(np.clip(1.0 / got.theta, *self.s.thrust_scale_bounds)), got.sigma, got.significant)
                 self.fits += int(got.significant)
-                self.fit_lag = got.lag if got.significant else None
+                self.fit_lag = (got.lag, self._onset_hint) if got.significant else None
                 self._fit_frames = got.frames
         # Raised by the accelerometer: its samples tell the mass until the heights have as many frames as a lag
         # needs (a height fit on a few frames is the noisier one); the heights then say whether there was a step.

@@ -28,6 +28,7 @@ from cfknode.flight.adaptation.estimate import AdaptationEstimate
 from cfknode.flight.adaptation.layer import FastAdaptation, LoopExtras
 from cfknode.flight.adaptation.settings import settings_from_controller
 from cfknode.flight.adaptation.thrust_lag import ThrustLagBank
+from cfknode.flight.adaptation.wake_guard import LAG_HOLD_S
 from cfknode.flight.mellinger import CommandShaping, ShapedForce
 from cfknode.flight.mpc import ResidualLinearisation
 
@@ -73,6 +74,7 @@ class LoopAdaptation:
         # A fleet drone's view of the others (flight/neighbours.py ``NeighbourFeed``): the layer calls no heavier step
         # under the drone above (wake_guard.py). None: alone, or a model slot's neighbour stands in.
         self.neighbour: Any = None
+        self._wake_t = -float("inf")  # s: the last tick under a wake or within its hold (wake_guard.py)
         self._coefficients_flown: tuple[np.ndarray, np.ndarray] | None = None  # (a, m) at the last off-air reset
 
     @property
@@ -124,7 +126,8 @@ class LoopAdaptation:
         # Under another drone's wake, or just past one, its push would pass for the motors' lag (the longest fits it
         # best): not learned then, from the frames, the samples or a step's fit.
         e, wake = self.layer.estimate, self.layer.wake
-        in_wake = wake.reaches(est.p, above) or wake.held(now)
+        in_wake = wake.reaches(est.p, above) or wake.held(now, LAG_HOLD_S)
+        self._wake_t = now if in_wake else self._wake_t
         learn_lag = not (e.stepping or self._sat[0] or in_wake)
         if airborne:  # the lag bank learns from the same frames as the layer
             self.lags.observe(est.v.item(2), bz[2], self.vehicle.mass * e.thrust_scale, self.vehicle.gravity,
@@ -142,8 +145,11 @@ class LoopAdaptation:
             shift = coeffs.tick(self._r, self.layer.sigma, self.layer.omega, self.layer.dt,
                                 learn=not (e.stepping or e.saturated), steady=state == "TRACK")
             self.layer.reexpress(shift)
-        if self.layer.fit_lag is not None and not in_wake:  # a step's fit is the lag's strongest evidence
-            self.lags.choose(self.layer.fit_lag)
+        # A step's fit is the lag's strongest evidence, but not of a step begun in a wake or its hold: fitted after
+        # the hold, the wake's departure passed for the longest lag (150 ms) in crossings under another drone.
+        fitted = self.layer.fit_lag
+        if fitted is not None and fitted[1] > self._wake_t:
+            self.lags.choose(fitted[0])
         self._count(now)
         return self.layer.applied
 

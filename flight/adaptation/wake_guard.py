@@ -13,7 +13,8 @@ carries that force for seconds, as it would a payload.
 
 Nor is it the motors' lag: the layer's lag bank (thrust_lag.py) took a wake's push, met with more thrust, for the
 longest lag (150 ms against the vehicle's 15 ms) once the accelerometer fed it. So no lag is learned while the drone
-is under another within ``radius`` and the reach (passing or not: ``reaches``), nor for ``HOLD_S`` after a pass.
+is under another within ``radius`` and the reach (passing or not: ``reaches``), nor for ``LAG_HOLD_S`` after a pass,
+nor from the fit of a step begun then, however late it ends (``LoopAdaptation``, flight/adaptation/loop.py).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ import numpy as np
 from cfknode.flight.neighbours import NONE_ABOVE
 
 HOLD_S = 0.3  # s after leaving the wake's reach: the detectors' run still holds the wake's surprise
+# s after leaving it that no motor lag is learned: the layer's answer to the wake still moves the accelerometer's
+# samples (at a 1 m/s crossing's turn, 0.1 s after HOLD_S, they chose 150 ms against the vehicle's 15).
+LAG_HOLD_S = 0.6
 # m/s of horizontal relative speed a pass starts above: a fleet's take-off moves a drone into place under another at
 # 0.35-0.40 m/s and stays (a step refused there came 0.13 s late); a 0.5 m/s crossing measures 0.42-0.47 under the jet.
 PASS_SPEED = 0.45
@@ -61,9 +65,9 @@ class WakeGuard:
                 self._under_t = -math.inf
         return self.held(t)
 
-    def held(self, t: float) -> bool:
-        """Whether a pass under a wake was seen within ``HOLD_S`` of ``t`` (as ``update`` last found)."""
-        return t - self._under_t < HOLD_S
+    def held(self, t: float, hold: float = HOLD_S) -> bool:
+        """Whether a pass under a wake was seen within ``hold`` of ``t`` (as ``update`` last found)."""
+        return t - self._under_t < hold
 
     def reaches(self, p: np.ndarray | None, above: np.ndarray | None) -> bool:
         """Whether ``p`` is under ``above`` within the wake's reach, passing or not (False with either unknown, or the
@@ -83,4 +87,4 @@ class WakeGuard:
             self._mark = (t, dx, dy)
 
 
-__all__ = ["HOLD_S", "PASS_SPEED", "REACH_M", "STOP_SPEED", "WakeGuard"]
+__all__ = ["HOLD_S", "LAG_HOLD_S", "PASS_SPEED", "REACH_M", "STOP_SPEED", "WakeGuard"]
