@@ -90,7 +90,8 @@ def test_a_stalled_stack_holds_the_upper_drone_level_and_lets_the_lowest_descend
     # "Last asked for": the radio's last fresh command, one of cf2's commands around the block (which tick was
     # the last to go out before the thread stopped is the wall clock's, not the test's).
     a = stall.t0s[1]
-    asked = {sp.thrust for t, _, sp in stall.samples[1] if a - 0.1 <= t <= a + HELD[0] and (sp.roll, sp.pitch) != (0.0, 0.0)}
+    asked = {sp.thrust for t, _, sp in stall.samples[1]
+             if a - 0.1 <= t <= a + HELD[0] and (sp.roll, sp.pitch) != (0.0, 0.0)}
     hover = stall.hover[1]
     holds = {sp.thrust for _, _, sp in held[1]}
     assert len(holds) == 1 and holds.pop() in {min(c, hover) for c in asked} and all(

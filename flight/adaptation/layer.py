@@ -131,7 +131,7 @@ class FastAdaptation:
         self._onset_hint: float | None = None  # s, the frame before the alarm's run began
         self._fitted: tuple[float, float, bool] | None = None  # (thrust scale, vertical offset, significant)
         self._fitting = False  # heights are given: steps are fitted
-        self.fit_lag: tuple[int, float] | None = None  # (an index of ``thrust_by_lag``, onset s) the last significant fit chose
+        self.fit_lag: tuple[int, float] | None = None  # the last significant fit's (``thrust_by_lag`` index, onset s)
         self._imu.reset()
         self._imu_step = False  # the step being tracked was raised by the accelerometer
         self._imu_sigma = 0.0  # the vertical offset when it was
