@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfknode.flight.latency import CommandDelayPredictor
+from cfknode.flight.mellinger import measured_yaw
 from cfknode.flight.settings import EstimatorConfig
 from cfknode.kernel.imu import ImuSample
 from cfknode.mocap.source import Pose
@@ -104,8 +105,7 @@ class VelocityEstimator:
             return
         self._last_pose_t = pose.t
         self._quat = pose.quaternion
-        w, x, y, z = pose.quaternion
-        self._yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        self._yaw = measured_yaw(pose.quaternion)
         t_m = pose.t - self._latency
         self._frame = (t_m, np.array(pose.position, dtype=float))
         if self._n == 0:

@@ -108,6 +108,22 @@ def acc_to_setpoint(
     return force_to_setpoint(shape_force(acc_world, vehicle, controller, shaping).force, yaw_des, q, vehicle, controller)
 
 
+def measured_yaw(q: Sequence[float]) -> float:
+    """The ZYX yaw [rad] of the attitude ``q`` (wxyz, body to world), in floats: the yaw the firmware's angle loop
+    keeps its own and turns the roll and pitch it is sent about."""
+    w, x, y, z = (float(c) for c in q)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def setpoint_body_z(roll_deg: float, pitch_deg: float, yaw: float) -> tuple[float, float]:
+    """The world x and y of the body z axis the firmware rebuilds from a setpoint's roll and pitch about ``yaw``
+    [rad]: the third column of Rz(yaw) Ry(pitch) Rx(roll), what ``force_to_setpoint`` solves for."""
+    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
+    cy, sy, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(roll), math.sin(roll)
+    sp = math.sin(pitch)
+    return cy * sp * cr + sy * sr, sy * sp * cr - cy * sr
+
+
 def force_to_setpoint(
     force: Sequence[float],
     yaw_des: float,
@@ -118,7 +134,7 @@ def force_to_setpoint(
     """Desired world force [N] (from ``shape_force``) -> RPYT setpoint for the measured attitude ``q``."""
     fx, fy, fz = (float(f) for f in force)
     w, x, y, z = (float(c) for c in q)
-    yaw_meas = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    yaw_meas = measured_yaw(q)
 
     # Desired body z axis, expressed in the frame turned by the *measured* yaw: the
     # firmware's angle loop rebuilds R = Rz(its own yaw) Ry(pitch) Rx(roll), so roll and

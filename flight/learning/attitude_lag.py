@@ -21,6 +21,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from cfknode.flight.adaptation.loop import body_z_floats
+from cfknode.flight.mellinger import measured_yaw, setpoint_body_z
 
 TAUS = np.round(np.arange(0.02, 0.4001, 0.02), 3)  # s: the grid of time constants tried (refined between points)
 MIN_GAIN = 0.05  # the R^2 a kept fit must gain over no lag (a hover's noise fits any lag about as well)
@@ -50,16 +51,9 @@ class AttitudeLagSettings:
 
 def sent_body_z(roll_deg: float, pitch_deg: float, q: Any) -> tuple[float, float]:
     """The world x and y of the body z axis the setpoint asks for: its roll and pitch about the measured yaw of ``q``
-    (w, x, y, z), as the firmware's angle loop rebuilds it (``flight/mellinger.py``'s ``force_to_setpoint``).
-
-    The third column of Rz(yaw) Ry(pitch) Rx(roll) in floats: it runs every tick, and the same through
-    ``models.quadrotor``'s quaternions took 9 us against 1.5."""
-    w, x, y, z = (float(c) for c in q)
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
-    cy, sy, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(roll), math.sin(roll)
-    sp = math.sin(pitch)
-    return cy * sp * cr + sy * sr, sy * sp * cr - cy * sr
+    (w, x, y, z), as the firmware's angle loop rebuilds it (``flight/mellinger.py``'s ``force_to_setpoint``). In
+    floats, every tick: through ``models.quadrotor``'s numpy quaternions it took 9 us."""
+    return setpoint_body_z(roll_deg, pitch_deg, measured_yaw(q))
 
 
 def lagged(u: np.ndarray, tau: float, dt: float) -> np.ndarray:
